@@ -1,0 +1,7 @@
+"""orchard_mapping: semantic mapping of orchard rows from two-side reconstructions.
+
+Layers (dependencies point down only): cli/ and ros/ -> pipeline -> core/ -> io/, sim/.
+`core` never imports rclpy or rosbags.
+"""
+
+__version__ = "0.1.0"

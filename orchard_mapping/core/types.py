@@ -1,0 +1,66 @@
+"""Typed value objects shared by every layer (frames and units in field comments)."""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+
+import numpy as np
+
+
+@dataclass(frozen=True)
+class CameraIntrinsics:
+    """Pinhole intrinsics of the colour camera (depth is aligned to colour)."""
+
+    width: int  # px
+    height: int  # px
+    fx: float  # px
+    fy: float  # px
+    cx: float  # px
+    cy: float  # px
+    distortion: tuple[float, ...] = ()  # plumb_bob k1 k2 t1 t2 k3, empty = none
+    frame_id: str = "camera_color_optical_frame"
+
+    @property
+    def K(self) -> np.ndarray:  # (3, 3)
+        return np.array([[self.fx, 0.0, self.cx], [0.0, self.fy, self.cy], [0.0, 0.0, 1.0]])
+
+
+@dataclass(frozen=True)
+class RGBDFrame:
+    """One colour image with its aligned depth, in the camera optical frame (REP-103)."""
+
+    stamp: float  # s, message time of the colour image
+    color: np.ndarray  # (H, W, 3) uint8, RGB order
+    depth: np.ndarray | None  # (H, W) float32 metres, 0 = missing; None in RGB-only mode
+    intrinsics: CameraIntrinsics
+    side: str = ""  # "front" / "back" where known, else ""
+    index: int = 0  # position in its stream
+
+
+@dataclass(frozen=True)
+class Pose:
+    """Rigid pose T_parent_child as rotation + translation."""
+
+    R: np.ndarray  # (3, 3)
+    t: np.ndarray  # (3,) metres
+
+    @staticmethod
+    def from_matrix(T: np.ndarray) -> "Pose":
+        T = np.asarray(T, dtype=float)
+        return Pose(T[:3, :3].copy(), T[:3, 3].copy())
+
+    def matrix(self) -> np.ndarray:  # (4, 4)
+        T = np.eye(4)
+        T[:3, :3] = self.R
+        T[:3, 3] = self.t
+        return T
+
+
+@dataclass(frozen=True)
+class StampedTrajectory:
+    """Camera poses T_odom_camera over time, as TUM stores them."""
+
+    stamps: np.ndarray  # (N,) s
+    positions: np.ndarray  # (N, 3) m, in the odom frame
+    quaternions: np.ndarray  # (N, 4) qx qy qz qw
+    frame_id: str = field(default="")

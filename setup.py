@@ -1,0 +1,33 @@
+"""ament_python package orchard_mapping (also pip-installable for the offline CLI)."""
+
+from glob import glob
+
+from setuptools import find_packages, setup
+
+package_name = "orchard_mapping"
+
+setup(
+    name=package_name,
+    version="0.1.0",
+    packages=find_packages(include=["orchard_mapping", "orchard_mapping.*"]),
+    data_files=[
+        ("share/ament_index/resource_index/packages", ["resource/" + package_name]),
+        ("share/" + package_name, ["package.xml"]),
+        ("share/" + package_name + "/config", glob("config/*.yaml")),
+        ("share/" + package_name + "/config/scenarios", glob("config/scenarios/*.yaml")),
+        ("share/" + package_name + "/launch", glob("launch/*.py")),
+    ],
+    python_requires=">=3.10",
+    install_requires=["numpy", "scipy", "pyyaml", "pydantic>=2", "typer", "rich", "rosbags", "opencv-python-headless"],
+    zip_safe=False,
+    maintainer="orchard_mapping developers",
+    maintainer_email="orchard-mapping@example.org",
+    description="Semantic mapping of orchard rows from two-side reconstructions",
+    license="BSD-3-Clause",
+    tests_require=["pytest"],
+    entry_points={
+        "console_scripts": [
+            "orchard-map = orchard_mapping.cli.main:app",
+        ],
+    },
+)
