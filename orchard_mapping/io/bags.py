@@ -1,0 +1,770 @@
+"""Reading and writing rosbag2 / MCAP bags without a ROS installation.
+
+- `BagWriter` writes a rosbag2 folder (metadata.yaml + one MCAP file)
+  atomically: it writes into a hidden sibling folder and renames it into place
+  on a successful close, so a failed write never leaves a half-written bag.
+- `read_rgbd` turns a recording (rosbag2 folder or bare `.mcap` file) into a
+  lazy sequence of `RGBDFrame`s.
+- `describe_bag` summarises any bag for `orchard-map inspect`.
+
+Errors are the typed `BagError`s of `orchard_mapping.errors`; each names the
+bag, the topic and, where it applies, the message field.
+"""
+
+from __future__ import annotations
+
+import contextlib
+import logging
+import math
+import os
+import shutil
+import struct
+import tempfile
+from collections import Counter
+from collections.abc import Iterator, Sequence
+from dataclasses import dataclass
+from pathlib import Path
+from types import TracebackType
+from typing import Any, Literal
+
+import numpy as np
+import yaml
+from rosbags.highlevel import AnyReader, AnyReaderError
+from rosbags.rosbag1 import ReaderError as Reader1Error
+from rosbags.rosbag2 import ReaderError as Reader2Error
+from rosbags.rosbag2 import StoragePlugin, Writer, WriterError
+
+from orchard_mapping.config import TopicsConfig
+from orchard_mapping.core.types import CameraIntrinsics, RGBDFrame
+from orchard_mapping.errors import (
+    BagError,
+    BagFormatError,
+    BagReadError,
+    CalibrationError,
+    EmptyBagError,
+    MissingTopicError,
+)
+from orchard_mapping.io.typesys import typestore
+
+__all__ = [
+    "COLOR_ENCODINGS",
+    "DEPTH_ENCODINGS",
+    "BagSummary",
+    "BagWriter",
+    "RGBDSequence",
+    "describe_bag",
+    "iter_messages",
+    "msg_header",
+    "read_rgbd",
+]
+
+log = logging.getLogger(__name__)
+
+IMAGE = "sensor_msgs/msg/Image"
+CAMERA_INFO = "sensor_msgs/msg/CameraInfo"
+STRING = "std_msgs/msg/String"
+
+# encoding -> (bytes per pixel, channel order of the first three channels)
+COLOR_ENCODINGS: dict[str, tuple[int, str]] = {
+    "rgb8": (3, "rgb"),
+    "bgr8": (3, "bgr"),
+    "rgba8": (4, "rgb"),
+    "bgra8": (4, "bgr"),
+}
+# encoding -> (bytes per pixel, units per metre); 16-bit depth is millimetres
+DEPTH_ENCODINGS: dict[str, tuple[int, float]] = {"16UC1": (2, 1000.0), "mono16": (2, 1000.0), "32FC1": (4, 1.0)}
+
+_READ_ERRORS = (AnyReaderError, Reader1Error, Reader2Error, OSError, EOFError, struct.error)
+_DESER_ERRORS = (AnyReaderError, ValueError, IndexError, struct.error)
+
+
+# --------------------------------------------------------------------------- stamps
+
+
+def _stamp_ns(stamp: float) -> int:
+    if not math.isfinite(stamp) or stamp < 0:
+        raise ValueError(f"stamp must be a finite, non-negative number of seconds, got {stamp!r}")
+    return round(stamp * 1e9)
+
+
+def _header_ns(header: Any) -> int:
+    return int(header.stamp.sec) * 1_000_000_000 + int(header.stamp.nanosec)
+
+
+def msg_header(stamp: float, frame_id: str = "") -> Any:
+    """A `std_msgs/msg/Header` for `stamp` (s), to build messages for `BagWriter.write_message`."""
+    store = typestore()
+    sec, nanosec = divmod(_stamp_ns(stamp), 1_000_000_000)
+    return store.types["std_msgs/msg/Header"](
+        stamp=store.types["builtin_interfaces/msg/Time"](sec=sec, nanosec=nanosec), frame_id=frame_id
+    )
+
+
+# --------------------------------------------------------------------------- writer
+
+
+class BagWriter:
+    """Write a rosbag2 folder with MCAP storage, atomically.
+
+    Use as a context manager. Every `write_*` takes `stamp` in seconds: it is
+    both the bag's log time and (for the messages built here) `header.stamp`.
+    A topic's connection is created on its first message; one topic, one type.
+
+        with BagWriter(tmp_path / "row1") as bag:
+            bag.write_camera_info("/camera/color/camera_info", 0.0, intr)
+            bag.write_color("/camera/color/image_raw", 0.0, rgb)
+    """
+
+    def __init__(self, path: str | os.PathLike[str], overwrite: bool = False) -> None:
+        self.path = Path(path)
+        self.overwrite = overwrite
+        self._store = typestore()
+        self._tmp: Path | None = None
+        self._writer: Writer | None = None
+        self._conns: dict[str, tuple[Any, str]] = {}  # topic -> (connection, msgtype)
+
+    # -- life cycle
+
+    def open(self) -> None:
+        if self._writer is not None:
+            raise BagError("writer is already open", bag=str(self.path))
+        if self.path.exists() and not self.overwrite:
+            raise BagError("output exists already (pass overwrite=True to replace it)", bag=str(self.path))
+        self.path.parent.mkdir(parents=True, exist_ok=True)
+        # A sibling folder on the same file system, so the final rename is atomic.
+        self._tmp = Path(tempfile.mkdtemp(prefix=f".{self.path.name}.", suffix=".partial", dir=self.path.parent))
+        self._writer = Writer(self._tmp / self.path.name, version=9, storage_plugin=StoragePlugin.MCAP)
+        try:
+            self._writer.open()
+        except BaseException:
+            self.abort()
+            raise
+
+    def close(self) -> None:
+        """Finish the bag and move it to `path` (replacing an existing one if `overwrite`)."""
+        writer, tmp = self._require_open(), self._tmp
+        assert tmp is not None
+        try:
+            writer.close()
+        except BaseException:
+            self.abort()
+            raise
+        self._writer = None
+        if self.path.exists() or self.path.is_symlink():
+            os.replace(self.path, tmp / ".replaced")
+        os.replace(tmp / self.path.name, self.path)
+        shutil.rmtree(tmp, ignore_errors=True)
+        self._tmp = None
+        log.debug("wrote bag %s (%d topics)", self.path, len(self._conns))
+
+    def abort(self) -> None:
+        """Drop everything written so far; `path` is left untouched."""
+        if self._writer is not None:
+            with contextlib.suppress(Exception):
+                self._writer.abort()
+            self._writer = None
+        if self._tmp is not None:
+            shutil.rmtree(self._tmp, ignore_errors=True)
+            self._tmp = None
+
+    def __enter__(self) -> BagWriter:
+        self.open()
+        return self
+
+    def __exit__(
+        self, exc_type: type[BaseException] | None, exc: BaseException | None, tb: TracebackType | None
+    ) -> None:
+        if exc_type is None:
+            self.close()
+        else:
+            self.abort()
+
+    # -- writing
+
+    def write_message(self, topic: str, stamp: float, msg: Any, msgtype: str) -> None:
+        """Write any registered message type (ours included); `stamp` (s) is the log time only."""
+        writer = self._require_open()
+        ns = _stamp_ns(stamp)
+        if topic not in self._conns:
+            if msgtype not in self._store.types:
+                raise BagError(f"unknown message type {msgtype!r}", bag=str(self.path), topic=topic)
+            self._conns[topic] = (writer.add_connection(topic, msgtype, typestore=self._store), msgtype)
+        conn, have = self._conns[topic]
+        if have != msgtype:
+            raise BagError(f"topic holds {have}, cannot also write {msgtype}", bag=str(self.path), topic=topic)
+        try:
+            data = self._store.serialize_cdr(msg, msgtype)
+        except Exception as err:  # rosbags raises assorted errors for a wrongly built message
+            raise BagError(f"cannot serialize {msgtype}: {err}", bag=str(self.path), topic=topic) from err
+        try:
+            writer.write(conn, ns, data)
+        except WriterError as err:
+            raise BagError(f"cannot write: {err}", bag=str(self.path), topic=topic) from err
+
+    def write_string(self, topic: str, stamp: float, text: str) -> None:
+        """std_msgs/String, e.g. the "front"/"back" side labels."""
+        self.write_message(topic, stamp, self._store.types[STRING](data=text), STRING)
+
+    def write_camera_info(self, topic: str, stamp: float, intr: CameraIntrinsics) -> None:
+        """sensor_msgs/CameraInfo, plumb_bob, with K, R (identity) and P filled; frame_id from `intr`."""
+        t = self._store.types
+        k = np.array([intr.fx, 0.0, intr.cx, 0.0, intr.fy, intr.cy, 0.0, 0.0, 1.0])
+        p = np.array([intr.fx, 0.0, intr.cx, 0.0, 0.0, intr.fy, intr.cy, 0.0, 0.0, 0.0, 1.0, 0.0])
+        msg = t[CAMERA_INFO](
+            header=msg_header(stamp, intr.frame_id),
+            height=intr.height,
+            width=intr.width,
+            distortion_model="plumb_bob",
+            d=np.array(intr.distortion, dtype=np.float64),
+            k=k,
+            r=np.eye(3).reshape(-1),
+            p=p,
+            binning_x=0,
+            binning_y=0,
+            roi=t["sensor_msgs/msg/RegionOfInterest"](x_offset=0, y_offset=0, height=0, width=0, do_rectify=False),
+        )
+        self.write_message(topic, stamp, msg, CAMERA_INFO)
+
+    def write_color(
+        self,
+        topic: str,
+        stamp: float,
+        rgb: np.ndarray,
+        encoding: Literal["rgb8", "bgr8"] = "rgb8",
+        frame_id: str = "camera_color_optical_frame",
+    ) -> None:
+        """sensor_msgs/Image from `rgb` (H, W, 3) uint8 in RGB order, stored as rgb8 or bgr8."""
+        rgb = np.asarray(rgb)
+        if rgb.ndim != 3 or rgb.shape[2] != 3 or rgb.dtype != np.uint8:
+            raise ValueError(f"colour image must be (H, W, 3) uint8, got {rgb.shape} {rgb.dtype}")
+        if encoding == "rgb8":
+            pixels = rgb
+        elif encoding == "bgr8":
+            pixels = rgb[..., ::-1]
+        else:
+            raise ValueError(f"colour encoding must be 'rgb8' or 'bgr8', got {encoding!r}")
+        self._write_image(topic, stamp, pixels, encoding, frame_id)
+
+    def write_depth(
+        self,
+        topic: str,
+        stamp: float,
+        depth_m: np.ndarray,
+        encoding: Literal["16UC1", "32FC1"] = "16UC1",
+        frame_id: str = "camera_color_optical_frame",
+    ) -> None:
+        """sensor_msgs/Image from `depth_m` (H, W) metres; 0, NaN, inf and negatives are stored as 0 (missing).
+
+        16UC1 stores rounded millimetres clipped to 65535; 32FC1 stores metres.
+        """
+        depth = np.asarray(depth_m)
+        if depth.ndim != 2:
+            raise ValueError(f"depth image must be (H, W), got {depth.shape}")
+        if encoding == "16UC1":
+            values = np.multiply(depth, 1000.0, dtype=np.float64)  # (H, W) mm
+        elif encoding == "32FC1":
+            values = np.array(depth, dtype=np.float32)  # (H, W) m
+        else:
+            raise ValueError(f"depth encoding must be '16UC1' or '32FC1', got {encoding!r}")
+        missing = ~((values > 0) & (values < np.inf))  # NaN, inf, <= 0
+        if encoding == "16UC1":
+            np.rint(values, out=values)
+            np.minimum(values, 65535.0, out=values)
+        values[missing] = 0
+        pixels = values.astype("<u2" if encoding == "16UC1" else "<f4")
+        self._write_image(topic, stamp, pixels, encoding, frame_id)
+
+    def _write_image(self, topic: str, stamp: float, pixels: np.ndarray, encoding: str, frame_id: str) -> None:
+        height, width = pixels.shape[:2]
+        data = np.ascontiguousarray(pixels).view(np.uint8).reshape(-1)
+        msg = self._store.types[IMAGE](
+            header=msg_header(stamp, frame_id),
+            height=height,
+            width=width,
+            encoding=encoding,
+            is_bigendian=0,
+            step=data.size // height if height else 0,
+            data=data,
+        )
+        self.write_message(topic, stamp, msg, IMAGE)
+
+    def _require_open(self) -> Writer:
+        if self._writer is None:
+            raise BagError("writer is not open (use it as a context manager)", bag=str(self.path))
+        return self._writer
+
+
+# --------------------------------------------------------------------------- reading helpers
+
+
+@contextlib.contextmanager
+def _open_reader(path: Path) -> Iterator[AnyReader]:
+    """AnyReader on a rosbag2 folder or a bare storage file (.mcap, .db3; rosbag1 .bag)."""
+    bag = str(path)
+    try:
+        reader = AnyReader([path], default_typestore=typestore())
+        reader.open()
+    except _READ_ERRORS as err:
+        what = "no such file or folder" if not path.exists() else "not a readable bag"
+        raise BagReadError(f"{what}: {err}", bag=bag) from err
+    try:
+        yield reader
+    finally:
+        with contextlib.suppress(Exception):
+            reader.close()
+
+
+def _messages(reader: AnyReader, connections: Sequence[Any], bag: str) -> Iterator[tuple[Any, int, bytes]]:
+    try:
+        yield from reader.messages(connections=connections)
+    except _READ_ERRORS as err:
+        raise BagReadError(f"bag is corrupt or truncated: {err}", bag=bag) from err
+
+
+def _deserialize(reader: AnyReader, raw: bytes, conn: Any, bag: str) -> Any:
+    try:
+        return reader.deserialize(raw, conn.msgtype)
+    except _DESER_ERRORS as err:
+        raise BagFormatError(f"cannot decode {conn.msgtype}: {err}", bag=bag, topic=conn.topic) from err
+
+
+def _check_image(msg: Any, encodings: dict[str, Any], kind: str, index: int, bag: str, topic: str) -> int:
+    """Validate encoding, step and data length of a sensor_msgs/Image; return bytes per pixel."""
+    if msg.encoding not in encodings:
+        raise BagFormatError(
+            f"{kind} image {index}: unsupported field 'encoding' = {msg.encoding!r} "
+            f"(supported: {', '.join(encodings)})",
+            bag=bag,
+            topic=topic,
+        )
+    bpp = encodings[msg.encoding][0]
+    if msg.step < msg.width * bpp:
+        raise BagFormatError(
+            f"{kind} image {index}: field 'step' = {msg.step} is less than width*{bpp} = {msg.width * bpp}",
+            bag=bag,
+            topic=topic,
+        )
+    if len(msg.data) != msg.height * msg.step:
+        raise BagFormatError(
+            f"{kind} image {index}: field 'data' holds {len(msg.data)} bytes, "
+            f"expected height*step = {msg.height}*{msg.step} = {msg.height * msg.step}",
+            bag=bag,
+            topic=topic,
+        )
+    return bpp
+
+
+def _pixels(msg: Any, bpp: int) -> np.ndarray:  # (H, W*bpp) uint8 without row padding
+    data = np.frombuffer(memoryview(msg.data), dtype=np.uint8) if not isinstance(msg.data, np.ndarray) else msg.data
+    return data.reshape(msg.height, msg.step)[:, : msg.width * bpp]
+
+
+def _decode_color(msg: Any) -> np.ndarray:  # (H, W, 3) uint8 RGB
+    bpp, order = COLOR_ENCODINGS[msg.encoding]
+    px = _pixels(msg, bpp).reshape(msg.height, msg.width, bpp)
+    rgb = px[..., 2::-1] if order == "bgr" else px[..., :3]
+    return np.array(rgb, dtype=np.uint8, order="C")  # own, writable copy
+
+
+def _decode_depth(msg: Any, depth_min_m: float, depth_max_m: float) -> np.ndarray:  # (H, W) float32 m, 0 = missing
+    bpp, units_per_m = DEPTH_ENCODINGS[msg.encoding]
+    dtype = np.dtype("u2" if bpp == 2 else "f4").newbyteorder(">" if msg.is_bigendian else "<")
+    raw = np.ascontiguousarray(_pixels(msg, bpp)).view(dtype).reshape(msg.height, msg.width)
+    depth = raw.astype(np.float32)
+    if units_per_m != 1.0:
+        depth /= np.float32(units_per_m)  # division, so whole millimetres give the nearest float32 metres
+    invalid = ~np.isfinite(depth) | (depth < depth_min_m) | (depth > depth_max_m)
+    depth[invalid] = 0.0
+    return depth
+
+
+def _topic_conns(reader: AnyReader, topic: str, msgtype: str, bag: str, what: str, required: bool = True) -> list[Any]:
+    info = reader.topics.get(topic)
+    if info is None:
+        if not required:
+            return []
+        present = sorted(reader.topics)
+        raise MissingTopicError(f"{what} topic not in bag; topics present: {present}", bag=bag, topic=topic)
+    types = {c.msgtype for c in info.connections}
+    if types != {msgtype}:
+        raise BagFormatError(f"{what} topic holds {sorted(types)}, expected {msgtype}", bag=bag, topic=topic)
+    return list(info.connections)
+
+
+# --------------------------------------------------------------------------- RGB-D sequence
+
+
+class RGBDSequence:
+    """The RGB-D frames of one bag, decoded lazily one colour/depth pair at a time.
+
+    Built by `read_rgbd`, which scans the bag once and raises every format
+    error before any frame is decoded; iterating re-reads the bag and decodes
+    only the images of the frames it yields (in colour-stamp order).
+    """
+
+    def __init__(
+        self,
+        bag: str,
+        topics: TopicsConfig,
+        mode: Literal["rgbd", "rgb"],
+        intrinsics: CameraIntrinsics,
+        stamps_ns: np.ndarray,  # (N,) int64 ns, sorted
+        color_index: np.ndarray,  # (N,) position of each frame's colour message on its topic
+        depth_index: np.ndarray,  # (N,) position of its depth message, -1 in rgb mode
+        sides: tuple[str, ...],
+        depth_range_m: tuple[float, float],
+        dropped: int,
+    ) -> None:
+        self.bag = bag
+        self.topics = topics
+        self.mode = mode
+        self.intrinsics = intrinsics
+        self.stamps = stamps_ns.astype(np.float64) / 1e9  # (N,) s
+        self.sides = sides
+        self.dropped = dropped  # colour images without a depth partner
+        self._color_index = color_index
+        self._depth_index = depth_index
+        self._depth_range_m = depth_range_m
+
+    def __len__(self) -> int:
+        return int(self.stamps.size)
+
+    @property
+    def duration(self) -> float:
+        """s, from the first to the last frame."""
+        return float(self.stamps[-1] - self.stamps[0]) if len(self) else 0.0
+
+    def __repr__(self) -> str:
+        return f"RGBDSequence(bag={self.bag!r}, mode={self.mode!r}, frames={len(self)}, duration={self.duration:.3f}s)"
+
+    def __iter__(self) -> Iterator[RGBDFrame]:
+        n = len(self)
+        want_color = {int(c) for c in self._color_index}
+        depth_refs = Counter(int(d) for d in self._depth_index if d >= 0)  # a depth image may serve several frames
+        pending_color: dict[int, bytes] = {}
+        pending_depth: dict[int, bytes] = {}
+        next_k = 0
+        with _open_reader(Path(self.bag)) as reader:
+            color_conns = _topic_conns(reader, self.topics.color, IMAGE, self.bag, "colour")
+            depth_conns = (
+                _topic_conns(reader, self.topics.depth, IMAGE, self.bag, "depth") if self.mode == "rgbd" else []
+            )
+            color_ids = {c.id for c in color_conns}
+            counts = {"color": 0, "depth": 0}
+            for conn, _, raw in _messages(reader, color_conns + depth_conns, self.bag):
+                if conn.id in color_ids:
+                    i = counts["color"]
+                    counts["color"] += 1
+                    if i in want_color:
+                        pending_color[i] = raw
+                else:
+                    i = counts["depth"]
+                    counts["depth"] += 1
+                    if depth_refs.get(i):
+                        pending_depth[i] = raw
+                while next_k < n:
+                    ci, di = int(self._color_index[next_k]), int(self._depth_index[next_k])
+                    if ci not in pending_color or (di >= 0 and di not in pending_depth):
+                        break
+                    yield self._frame(
+                        reader, next_k, pending_color.pop(ci), pending_depth.get(di), color_conns[0], depth_conns
+                    )
+                    if di >= 0:
+                        depth_refs[di] -= 1
+                        if depth_refs[di] == 0:
+                            del pending_depth[di]
+                    next_k += 1
+        if next_k < n:
+            raise BagReadError(f"bag changed while reading: {n - next_k} of {n} frames not found", bag=self.bag)
+
+    def _frame(
+        self,
+        reader: AnyReader,
+        k: int,
+        color_raw: bytes,
+        depth_raw: bytes | None,
+        color_conn: Any,
+        depth_conns: list[Any],
+    ) -> RGBDFrame:
+        color = _decode_color(_deserialize(reader, color_raw, color_conn, self.bag))
+        depth = None
+        if depth_raw is not None:
+            depth = _decode_depth(_deserialize(reader, depth_raw, depth_conns[0], self.bag), *self._depth_range_m)
+        return RGBDFrame(
+            stamp=float(self.stamps[k]),
+            color=color,
+            depth=depth,
+            intrinsics=self.intrinsics,
+            side=self.sides[k],
+            index=k,
+        )
+
+
+def _intrinsics(msg: Any) -> CameraIntrinsics | None:
+    k = np.asarray(msg.k, dtype=np.float64)
+    fx, fy, cx, cy = k[0], k[4], k[2], k[5]
+    if not (np.isfinite([fx, fy, cx, cy]).all() and fx > 0 and fy > 0):
+        return None
+    return CameraIntrinsics(
+        width=int(msg.width),
+        height=int(msg.height),
+        fx=float(fx),
+        fy=float(fy),
+        cx=float(cx),
+        cy=float(cy),
+        distortion=tuple(float(x) for x in msg.d),
+        frame_id=msg.header.frame_id or CameraIntrinsics.frame_id,
+    )
+
+
+def _pair(color_ns: np.ndarray, depth_ns: np.ndarray, max_dt_ns: int) -> np.ndarray:
+    """For each colour stamp, the index into `depth_ns` of the nearest depth stamp within max_dt_ns, else -1."""
+    if depth_ns.size == 0:
+        return np.full(color_ns.shape, -1, dtype=np.int64)
+    order = np.argsort(depth_ns, kind="stable")
+    d = depth_ns[order]  # (M,) sorted
+    j = np.clip(np.searchsorted(d, color_ns), 1, d.size - 1) if d.size > 1 else np.zeros(color_ns.shape, np.int64)
+    left = np.maximum(j - 1, 0)
+    pick = np.where(np.abs(color_ns - d[left]) <= np.abs(d[j] - color_ns), left, j)  # (N,)
+    ok = np.abs(d[pick] - color_ns) <= max_dt_ns
+    return np.where(ok, order[pick], -1)
+
+
+def read_rgbd(
+    path: str | os.PathLike[str],
+    topics: TopicsConfig = TopicsConfig(),  # noqa: B008 (frozen model, safe to share)
+    *,
+    mode: Literal["rgbd", "rgb"] = "rgbd",
+    max_pair_dt_s: float = 0.01,
+    depth_min_m: float = 0.2,
+    depth_max_m: float = 6.0,
+) -> RGBDSequence:
+    """Index the RGB-D frames of a rosbag2 folder or bare `.mcap` file.
+
+    Scans the bag once (headers, sizes, encodings; image data is discarded),
+    so every error below is raised here, before any frame is decoded:
+    BagReadError (missing / unreadable path, not a bag), EmptyBagError (no
+    messages, no colour messages, no colour image with a depth partner),
+    MissingTopicError (colour or, in rgbd mode, depth topic absent),
+    BagFormatError (unsupported encoding, wrong data length, colour/depth size
+    mismatch, no valid depth anywhere in rgbd mode), CalibrationError (no
+    CameraInfo with finite, positive fx/fy in field 'k', or one whose size
+    differs from the colour images).
+
+    Colour images are paired with the depth image nearest in header stamp
+    within `max_pair_dt_s`; unpaired colour images are dropped (one warning
+    with the count). Depth outside [depth_min_m, depth_max_m] becomes 0. Side
+    labels come from `topics.side` (std_msgs/String, latest at or before each
+    frame's stamp, by log time); "" when the topic is absent.
+    """
+    if mode not in ("rgbd", "rgb"):
+        raise ValueError(f"mode must be 'rgbd' or 'rgb', got {mode!r}")
+    if not (max_pair_dt_s > 0 and 0 <= depth_min_m < depth_max_m):
+        raise ValueError("need max_pair_dt_s > 0 and 0 <= depth_min_m < depth_max_m")
+    path = Path(path)
+    bag = str(path)
+    with _open_reader(path) as reader:
+        if reader.message_count == 0:
+            raise EmptyBagError("bag holds no messages", bag=bag)
+        color_conns = _topic_conns(reader, topics.color, IMAGE, bag, "colour")
+        if not any(c.msgcount for c in color_conns):
+            raise EmptyBagError("no messages on the colour topic", bag=bag, topic=topics.color)
+        depth_conns = _topic_conns(reader, topics.depth, IMAGE, bag, "depth") if mode == "rgbd" else []
+        if topics.camera_info not in reader.topics:
+            raise CalibrationError(
+                f"no CameraInfo topic, so field 'k' (intrinsics) is unavailable; "
+                f"topics present: {sorted(reader.topics)}",
+                bag=bag,
+                topic=topics.camera_info,
+            )
+        info_conns = _topic_conns(reader, topics.camera_info, CAMERA_INFO, bag, "camera info")
+        side_conns = _topic_conns(reader, topics.side, STRING, bag, "side", required=False)
+        groups = (("c", color_conns), ("d", depth_conns), ("i", info_conns), ("s", side_conns))
+        by_id = {c.id: kind for kind, conns in groups for c in conns}
+        wanted = [c for _, conns in groups for c in conns]
+
+        color_ns: list[int] = []
+        depth_ns: list[int] = []
+        side_ns: list[int] = []
+        side_text: list[str] = []
+        color_size: tuple[int, int] | None = None
+        intr: CameraIntrinsics | None = None
+        bad_k: str | None = None
+        n_info = 0
+        depth_ok = False
+        for conn, log_ns, raw in _messages(reader, wanted, bag):
+            kind = by_id[conn.id]
+            if kind == "s":
+                side_ns.append(log_ns)
+                side_text.append(str(_deserialize(reader, raw, conn, bag).data).strip())
+            elif kind == "i":
+                n_info += 1
+                if intr is None:
+                    msg = _deserialize(reader, raw, conn, bag)
+                    intr = _intrinsics(msg)
+                    if intr is None and bad_k is None:
+                        bad_k = f"k = {[float(x) for x in msg.k]}"
+            elif kind == "c":
+                msg = _deserialize(reader, raw, conn, bag)
+                _check_image(msg, COLOR_ENCODINGS, "colour", len(color_ns), bag, conn.topic)
+                size = (int(msg.width), int(msg.height))
+                if color_size is None:
+                    color_size = size
+                elif size != color_size:
+                    raise BagFormatError(
+                        f"colour image {len(color_ns)} is {size[0]}x{size[1]}, "
+                        f"earlier ones {color_size[0]}x{color_size[1]}",
+                        bag=bag,
+                        topic=conn.topic,
+                    )
+                color_ns.append(_header_ns(msg.header))
+            else:
+                msg = _deserialize(reader, raw, conn, bag)
+                _check_image(msg, DEPTH_ENCODINGS, "depth", len(depth_ns), bag, conn.topic)
+                if color_size is not None and (msg.width, msg.height) != color_size:
+                    raise BagFormatError(
+                        f"depth image {len(depth_ns)} is {msg.width}x{msg.height} but colour images are "
+                        f"{color_size[0]}x{color_size[1]} (depth must be aligned to colour)",
+                        bag=bag,
+                        topic=conn.topic,
+                    )
+                if not depth_ok:
+                    depth_ok = bool(np.any(_decode_depth(msg, depth_min_m, depth_max_m)))
+                depth_ns.append(_header_ns(msg.header))
+
+    if not color_ns:
+        raise EmptyBagError("no messages on the colour topic", bag=bag, topic=topics.color)
+    assert color_size is not None
+    if intr is None:
+        detail = f"no valid fx/fy in field 'k' ({bad_k})" if bad_k else "field 'k' unavailable"
+        raise CalibrationError(
+            f"no usable CameraInfo among {n_info} messages: {detail}", bag=bag, topic=topics.camera_info
+        )
+    if intr.width and intr.height and (intr.width, intr.height) != color_size:
+        raise CalibrationError(
+            f"CameraInfo is {intr.width}x{intr.height} (fields 'width', 'height') but colour images are "
+            f"{color_size[0]}x{color_size[1]}",
+            bag=bag,
+            topic=topics.camera_info,
+        )
+    intr = CameraIntrinsics(
+        color_size[0], color_size[1], intr.fx, intr.fy, intr.cx, intr.cy, intr.distortion, intr.frame_id
+    )
+    if mode == "rgbd":
+        if not depth_ns:
+            raise EmptyBagError(
+                "no messages on the depth topic (use mode='rgb' for colour only)", bag=bag, topic=topics.depth
+            )
+        if not depth_ok:
+            raise BagFormatError(
+                f"depth topic holds no valid depth (every pixel is 0, NaN or outside [{depth_min_m}, {depth_max_m}] m) "
+                f"in all {len(depth_ns)} images; use mode='rgb' for colour only",
+                bag=bag,
+                topic=topics.depth,
+            )
+
+    c_ns = np.asarray(color_ns, dtype=np.int64)  # (Nc,) in bag order
+    if np.any(np.diff(c_ns) < 0):
+        log.warning(
+            "%s: %d colour stamps on %s are out of order; frames are sorted by stamp",
+            bag,
+            int(np.sum(np.diff(c_ns) < 0)),
+            topics.color,
+        )
+    color_index = np.argsort(c_ns, kind="stable")  # (Nc,)
+    c_sorted = c_ns[color_index]
+    if mode == "rgbd":
+        depth_index = _pair(c_sorted, np.asarray(depth_ns, dtype=np.int64), round(max_pair_dt_s * 1e9))
+        keep = depth_index >= 0
+        dropped = int(np.sum(~keep))
+        if dropped:
+            log.warning(
+                "%s: dropped %d of %d colour images without a depth image within %.3f s",
+                bag,
+                dropped,
+                c_ns.size,
+                max_pair_dt_s,
+            )
+        if not keep.any():
+            raise EmptyBagError(
+                f"no colour image has a depth image ({topics.depth}) within {max_pair_dt_s} s",
+                bag=bag,
+                topic=topics.color,
+            )
+        color_index, depth_index, c_sorted = color_index[keep], depth_index[keep], c_sorted[keep]
+    else:
+        depth_index = np.full(color_index.shape, -1, dtype=np.int64)
+        dropped = 0
+
+    if side_ns:
+        s_ns = np.asarray(side_ns, dtype=np.int64)
+        s_order = np.argsort(s_ns, kind="stable")
+        latest = np.searchsorted(s_ns[s_order], c_sorted, side="right") - 1  # (N,)
+        sides = tuple(side_text[s_order[i]] if i >= 0 else "" for i in latest)
+    else:
+        sides = ("",) * c_sorted.size
+
+    seq = RGBDSequence(
+        bag, topics, mode, intr, c_sorted, color_index, depth_index, sides, (depth_min_m, depth_max_m), dropped
+    )
+    log.info("%s: %d frames (%s), %.2f s", bag, len(seq), mode, seq.duration)
+    return seq
+
+
+def iter_messages(path: str | os.PathLike[str], topic: str) -> Iterator[tuple[float, Any]]:
+    """Decoded messages of one topic as (log time s, message), in log-time order (any type, ours included)."""
+    path = Path(path)
+    bag = str(path)
+    with _open_reader(path) as reader:
+        info = reader.topics.get(topic)
+        if info is None:
+            raise MissingTopicError(f"topic not in bag; topics present: {sorted(reader.topics)}", bag=bag, topic=topic)
+        for conn, log_ns, raw in _messages(reader, list(info.connections), bag):
+            yield log_ns / 1e9, _deserialize(reader, raw, conn, bag)
+
+
+# --------------------------------------------------------------------------- summary
+
+
+@dataclass(frozen=True)
+class BagSummary:
+    """What `orchard-map inspect` shows about a bag."""
+
+    path: str
+    storage_id: str  # "mcap", "sqlite3" or "rosbag1"
+    duration_s: float  # s, first to last message (log time)
+    start_s: float | None  # s, log time of the first message; None for an empty bag
+    end_s: float | None  # s, log time of the last message; None for an empty bag
+    size_bytes: int  # all files of the bag
+    topics: tuple[tuple[str, str, int], ...]  # (name, msgtype, message count), sorted by name
+
+
+def _storage_id(path: Path) -> str:
+    if path.is_dir():
+        with contextlib.suppress(OSError, yaml.YAMLError, KeyError, TypeError):
+            meta = yaml.safe_load((path / "metadata.yaml").read_text())
+            return str(meta["rosbag2_bagfile_information"]["storage_identifier"])
+        return "unknown"
+    return {".mcap": "mcap", ".db3": "sqlite3", ".bag": "rosbag1"}.get(path.suffix, "unknown")
+
+
+def describe_bag(path: str | os.PathLike[str]) -> BagSummary:
+    """Summary of any bag AnyReader can open (no message is decoded)."""
+    path = Path(path)
+    with _open_reader(path) as reader:
+        count = reader.message_count
+        start = reader.start_time if count else None
+        end = reader.end_time - 1 if count else None  # rosbags' end_time is 1 ns after the last message
+        topics = tuple(
+            sorted((name, info.msgtype or "<mixed>", int(info.msgcount)) for name, info in reader.topics.items())
+        )
+    size = sum(p.stat().st_size for p in path.rglob("*") if p.is_file()) if path.is_dir() else path.stat().st_size
+    return BagSummary(
+        path=str(path),
+        storage_id=_storage_id(path),
+        duration_s=(end - start) / 1e9 if start is not None and end is not None else 0.0,
+        start_s=start / 1e9 if start is not None else None,
+        end_s=end / 1e9 if end is not None else None,
+        size_bytes=int(size),
+        topics=topics,
+    )
