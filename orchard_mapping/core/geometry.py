@@ -1,0 +1,146 @@
+"""Small pure geometry helpers: rotations, poses, similarity alignment, path length.
+
+Conventions: quaternions are `qx qy qz qw` (scalar last, as TUM and ROS store
+them); 4x4 transforms `T_a_b` map points in frame b to frame a
+(p_a = T_a_b p_b); a similarity carries `s R` in its 3x3 block.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+from scipy.spatial.transform import Rotation
+
+from orchard_mapping.errors import AlignmentError
+
+__all__ = [
+    "Similarity",
+    "decompose_similarity",
+    "make_transform",
+    "matrix_to_quat",
+    "path_length",
+    "pose_matrices",
+    "quat_to_matrix",
+    "rotation_angle_deg",
+    "transform_points",
+    "umeyama",
+]
+
+
+def quat_to_matrix(q: np.ndarray) -> np.ndarray:
+    """(..., 4) quaternions qx qy qz qw (normalised here) -> (..., 3, 3) rotation matrices."""
+    q = np.asarray(q, dtype=float)
+    flat = q.reshape(-1, 4)
+    norms = np.linalg.norm(flat, axis=1)
+    if np.any(norms < 1e-12) or not np.all(np.isfinite(norms)):
+        raise ValueError("quaternion with zero or non-finite norm")
+    return Rotation.from_quat(flat / norms[:, None]).as_matrix().reshape(q.shape[:-1] + (3, 3))
+
+
+def matrix_to_quat(R: np.ndarray) -> np.ndarray:
+    """(..., 3, 3) rotation matrices -> (..., 4) unit quaternions qx qy qz qw with qw >= 0."""
+    R = np.asarray(R, dtype=float)
+    q = Rotation.from_matrix(R.reshape(-1, 3, 3)).as_quat()  # (N, 4)
+    q = np.where(q[:, 3:4] < 0.0, -q, q)
+    return q.reshape(R.shape[:-2] + (4,))
+
+
+def make_transform(R: np.ndarray, t: np.ndarray, s: float = 1.0) -> np.ndarray:
+    """4x4 similarity [[s R, t], [0, 1]] from R (3, 3), t (3,) m and scale s."""
+    T = np.eye(4)
+    T[:3, :3] = s * np.asarray(R, dtype=float)
+    T[:3, 3] = np.asarray(t, dtype=float)
+    return T
+
+
+def pose_matrices(positions: np.ndarray, quaternions: np.ndarray) -> np.ndarray:
+    """(N, 3) m and (N, 4) qx qy qz qw -> (N, 4, 4) poses."""
+    positions = np.asarray(positions, dtype=float)
+    T = np.tile(np.eye(4), (positions.shape[0], 1, 1))  # (N, 4, 4)
+    T[:, :3, :3] = quat_to_matrix(quaternions)
+    T[:, :3, 3] = positions
+    return T
+
+
+def transform_points(T: np.ndarray, points: np.ndarray) -> np.ndarray:
+    """Apply a 4x4 transform (rigid or similarity) to (N, 3) points."""
+    T = np.asarray(T, dtype=float)
+    points = np.asarray(points, dtype=float).reshape(-1, 3)
+    return points @ T[:3, :3].T + T[:3, 3]
+
+
+def rotation_angle_deg(R: np.ndarray) -> float:
+    """Angle of a rotation matrix (3, 3) in degrees, in [0, 180]."""
+    R = np.asarray(R, dtype=float)
+    c = (np.trace(R) - 1.0) / 2.0
+    # arccos is ill-conditioned near 0: use the skew part as well.
+    s = 0.5 * np.linalg.norm([R[2, 1] - R[1, 2], R[0, 2] - R[2, 0], R[1, 0] - R[0, 1]])
+    return float(np.degrees(np.arctan2(s, np.clip(c, -1.0, 1.0))))
+
+
+@dataclass(frozen=True)
+class Similarity:
+    """p_dst = s R p_src + t."""
+
+    R: np.ndarray  # (3, 3) rotation
+    t: np.ndarray  # (3,) m
+    s: float = 1.0  # scale, 1 for a rigid transform
+
+    def matrix(self) -> np.ndarray:  # (4, 4)
+        return make_transform(self.R, self.t, self.s)
+
+
+def decompose_similarity(T: np.ndarray) -> Similarity:
+    """Split a 4x4 similarity into scale, nearest rotation and translation.
+
+    s = cbrt(det(A)) of the 3x3 block A; R = the rotation nearest A / s (SVD).
+    Raises ValueError if A is singular or reflects.
+    """
+    T = np.asarray(T, dtype=float)
+    A = T[:3, :3]
+    det = float(np.linalg.det(A))
+    if not np.isfinite(det) or det <= 1e-12:
+        raise ValueError(f"3x3 block is singular or a reflection (det = {det:.3g})")
+    s = det ** (1.0 / 3.0)
+    U, _, Vt = np.linalg.svd(A / s)
+    R = U @ Vt
+    return Similarity(R=R, t=T[:3, 3].copy(), s=s)
+
+
+def umeyama(src: np.ndarray, dst: np.ndarray, with_scale: bool = False) -> Similarity:
+    """Least-squares similarity (Umeyama 1991) with dst ~ s R src + t.
+
+    src, dst: (N, 3) corresponding points, N >= 3. Without scale it is the
+    Kabsch solution (s = 1). Raises AlignmentError if too few points or the
+    source points coincide.
+    """
+    src = np.asarray(src, dtype=float)
+    dst = np.asarray(dst, dtype=float)
+    if src.shape != dst.shape or src.ndim != 2 or src.shape[1] != 3:
+        raise AlignmentError(f"point sets must both be (N, 3), got {src.shape} and {dst.shape}")
+    n = src.shape[0]
+    if n < 3:
+        raise AlignmentError(f"alignment needs at least 3 corresponding points, got {n}")
+    mu_s, mu_d = src.mean(axis=0), dst.mean(axis=0)
+    xs, xd = src - mu_s, dst - mu_d  # (N, 3)
+    var_s = float(np.sum(xs**2) / n)
+    if var_s < 1e-18:
+        raise AlignmentError("source points coincide: alignment is undetermined")
+    cov = xd.T @ xs / n  # (3, 3)
+    U, D, Vt = np.linalg.svd(cov)
+    S = np.eye(3)
+    if np.linalg.det(U) * np.linalg.det(Vt) < 0.0:
+        S[2, 2] = -1.0
+    R = U @ S @ Vt
+    s = float(np.sum(D * np.diag(S)) / var_s) if with_scale else 1.0
+    t = mu_d - s * R @ mu_s
+    return Similarity(R=R, t=t, s=s)
+
+
+def path_length(positions: np.ndarray) -> float:
+    """Sum of distances between consecutive (N, 3) positions (m); 0 for N < 2."""
+    positions = np.asarray(positions, dtype=float).reshape(-1, 3)
+    if positions.shape[0] < 2:
+        return 0.0
+    return float(np.linalg.norm(np.diff(positions, axis=0), axis=1).sum())

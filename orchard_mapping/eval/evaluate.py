@@ -1,0 +1,259 @@
+"""`evaluate_result`: compare one result folder with the simulator's ground truth.
+
+Reads only the contract files (docs/results.md); a part the run did not
+produce is reported as skipped, never an error. A part that is present but
+malformed raises ResultFormatError.
+"""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import numpy as np
+import yaml
+
+from orchard_mapping.core.geometry import transform_points
+from orchard_mapping.errors import AlignmentError, ResultFormatError
+from orchard_mapping.eval.ground_truth import GroundTruth, load_ground_truth
+from orchard_mapping.eval.metrics import (
+    DoubleCount,
+    MergeError,
+    TrajectoryError,
+    double_count,
+    match_trees,
+    merge_error,
+    trajectory_error,
+)
+from orchard_mapping.eval.report import (
+    EvaluationReport,
+    FruitCountError,
+    MatchingSummary,
+    TimingSummary,
+    TraitErrors,
+    TreePair,
+)
+from orchard_mapping.io.results import (
+    SIDE_MERGE_JSON,
+    TIMINGS_JSON,
+    TREES_CSV,
+    TREES_JSON,
+    ResultTree,
+    read_side_merge,
+    read_timings,
+    read_trees,
+    read_trees_csv,
+    read_tum,
+    trajectory_filename,
+)
+
+__all__ = ["evaluate_result"]
+
+CONFIG_EFFECTIVE = "config.effective.yaml"
+
+
+def _rgb_only(result_dir: Path) -> bool:
+    """True if the run's effective configuration says `input.mode: rgb` (trajectories up to scale)."""
+    path = result_dir / CONFIG_EFFECTIVE
+    if not path.is_file():
+        return False
+    try:
+        cfg = yaml.safe_load(path.read_text(encoding="utf-8")) or {}
+    except (OSError, yaml.YAMLError) as err:
+        raise ResultFormatError(f"{path}: not readable YAML: {err}") from err
+    mode = cfg.get("input", {}).get("mode") if isinstance(cfg, dict) and isinstance(cfg.get("input"), dict) else None
+    return mode == "rgb"
+
+
+def _mean_or_none(v: np.ndarray) -> float | None:
+    return float(v.mean()) if v.size else None
+
+
+def _trees_part(
+    gt: GroundTruth, trees: list[ResultTree], T_front_world: np.ndarray, radius_m: float, gate_factor: float
+) -> tuple[MatchingSummary, tuple[TreePair, ...], TraitErrors, FruitCountError, DoubleCount | None]:
+    true_xyz = transform_points(T_front_world, np.array([t.position for t in gt.trees]).reshape(-1, 3))  # (T, 3)
+    est_xyz = np.array([t.position for t in trees], dtype=float).reshape(-1, 3)  # (E, 3)
+    m = match_trees(true_xyz, est_xyz, radius_m)
+    pairs = tuple(
+        TreePair(
+            true_id=gt.trees[i].id,
+            result_id=trees[j].id,
+            distance_m=float(d),
+            true_trunk_diameter_m=gt.trees[i].diameter_m,
+            est_trunk_diameter_m=trees[j].trunk_diameter_m,
+            true_height_m=gt.trees[i].height_m,
+            est_height_m=trees[j].height_m,
+            true_canopy_volume_m3=gt.trees[i].canopy_volume_m3,
+            est_canopy_volume_m3=trees[j].canopy_volume_m3,
+            true_fruit_visible=gt.trees[i].fruit_visible["either"],
+            true_fruit_all=gt.trees[i].fruit_count,
+            est_fruit_count=trees[j].fruit_count,
+        )
+        for i, j, d in zip(m.true_index.tolist(), m.est_index.tolist(), m.distance_m.tolist(), strict=True)
+    )
+    summary = MatchingSummary(
+        true_trees=len(gt.trees),
+        result_trees=len(trees),
+        matched=len(pairs),
+        missed=int(m.missed.size),
+        false=int(m.false.size),
+        mean_distance_m=_mean_or_none(m.distance_m),
+        missed_ids=tuple(gt.trees[i].id for i in m.missed.tolist()),
+        false_ids=tuple(trees[j].id for j in m.false.tolist()),
+    )
+
+    def diffs(true_attr: str, est_attr: str) -> tuple[np.ndarray, np.ndarray]:
+        sel = [p for p in pairs if getattr(p, est_attr) is not None]
+        return (
+            np.array([getattr(p, est_attr) for p in sel], dtype=float),
+            np.array([getattr(p, true_attr) for p in sel], dtype=float),
+        )
+
+    d_est, d_true = diffs("true_trunk_diameter_m", "est_trunk_diameter_m")
+    h_est, h_true = diffs("true_height_m", "est_height_m")
+    v_est, v_true = diffs("true_canopy_volume_m3", "est_canopy_volume_m3")
+    v_ok = v_true > 0.0  # a percentage of a zero volume is undefined
+    v_rel = (v_est[v_ok] - v_true[v_ok]) / v_true[v_ok]
+    mae_d, mae_h = _mean_or_none(np.abs(d_est - d_true)), _mean_or_none(np.abs(h_est - h_true))
+    mape, bias = _mean_or_none(np.abs(v_rel)), _mean_or_none(v_rel)
+    traits = TraitErrors(
+        trunk_diameter_mae_mm=None if mae_d is None else 1000.0 * mae_d,
+        trunk_diameter_n=int(d_est.size),
+        height_mae_cm=None if mae_h is None else 100.0 * mae_h,
+        height_n=int(h_est.size),
+        canopy_volume_mape_percent=None if mape is None else 100.0 * mape,
+        canopy_volume_bias_percent=None if bias is None else 100.0 * bias,
+        canopy_volume_n=int(v_rel.size),
+    )
+
+    counted = [p for p in pairs if p.est_fruit_count is not None]
+    est = sum(p.est_fruit_count for p in counted)  # type: ignore[misc]
+    vis = sum(p.true_fruit_visible for p in counted)
+    tot = sum(p.true_fruit_all for p in counted)
+    fruit = FruitCountError(
+        n_trees=len(counted),
+        estimated=est,
+        true_visible=vis,
+        true_all=tot,
+        error_visible_percent=100.0 * (est - vis) / vis if vis else None,
+        error_all_percent=100.0 * (est - tot) / tot if tot else None,
+    )
+
+    dc = None
+    if any(t.fruit_positions is not None for t in trees):
+        est_f = np.concatenate([np.zeros((0, 3))] + [t.fruit_positions for t in trees if t.fruit_positions is not None])
+        true_f = transform_points(
+            T_front_world, np.concatenate([np.zeros((0, 3))] + [t.fruit_positions for t in gt.trees])
+        )
+        radii = np.concatenate([np.zeros(0)] + [t.fruit_radii for t in gt.trees])
+        dc = double_count(est_f, true_f, radii, gate_factor)
+    return summary, pairs, traits, fruit, dc
+
+
+def _timings_part(gt: GroundTruth, result_dir: Path) -> TimingSummary:
+    tm = read_timings(result_dir / TIMINGS_JSON)
+    rec, source = tm.recording_duration_s, "timings.json"
+    if rec is None or rec <= 0.0:
+        rec = sum(s.duration_s for s in gt.sides.values())
+        source = "ground truth"
+        if rec <= 0.0:
+            rec, source = None, "unknown"
+    return TimingSummary(
+        stages=dict(tm.stages),
+        total_s=tm.total_s,
+        frames=tm.frames,
+        recording_duration_s=rec,
+        recording_duration_source=source,
+        realtime_factor=tm.total_s / rec if rec else None,
+    )
+
+
+def evaluate_result(
+    truth_path: str | Path,
+    result_dir: str | Path,
+    match_radius_m: float = 0.3,
+    *,
+    trajectory_max_dt_s: float = 0.005,
+    fruit_gate_factor: float = 1.5,
+    scale_alignment: bool | None = None,
+) -> EvaluationReport:
+    """Evaluate `result_dir` against `truth_path` (ground_truth.json).
+
+    match_radius_m: largest 3D distance (m, map) of a matched tree pair.
+    trajectory_max_dt_s: stamp association tolerance (s).
+    fruit_gate_factor: an estimated fruit matches a true fruit within this x its radius.
+    scale_alignment: fit scale in the ATE alignment; None = only if the run's
+    config.effective.yaml says `input.mode: rgb`.
+    Raises GroundTruthError / ResultFormatError for unusable inputs.
+    """
+    gt = load_ground_truth(truth_path)
+    result_dir = Path(result_dir)
+    if not result_dir.is_dir():
+        raise ResultFormatError(f"{result_dir}: result folder not found")
+    skipped: dict[str, str] = {}
+    T_front_world = np.linalg.inv(gt.sides["front"].T_world_odom)  # world -> odom_front (= map)
+
+    matching = traits = fruit = None
+    dc: DoubleCount | None = None
+    pairs: tuple[TreePair, ...] = ()
+    if (result_dir / TREES_JSON).is_file():
+        trees = read_trees(result_dir / TREES_JSON)
+    elif (result_dir / TREES_CSV).is_file():
+        trees = read_trees_csv(result_dir / TREES_CSV)
+    else:
+        trees = None
+        for part in ("matching", "traits", "fruit_count", "double_count"):
+            skipped[part] = f"{TREES_JSON} absent"
+    if trees is not None:
+        matching, pairs, traits, fruit, dc = _trees_part(gt, trees, T_front_world, match_radius_m, fruit_gate_factor)
+        if dc is None:
+            skipped["double_count"] = "no result tree carries fruit_positions"
+        if fruit.n_trees == 0:
+            skipped["fruit_count"] = "no matched tree has a fruit_count"
+            fruit = None
+
+    merge: MergeError | None = None
+    if (result_dir / SIDE_MERGE_JSON).is_file():
+        sm = read_side_merge(result_dir / SIDE_MERGE_JSON)
+        T_back_world = np.linalg.inv(gt.sides["back"].T_world_odom)
+        bases = transform_points(T_back_world, np.array([t.trunk_base for t in gt.trees]).reshape(-1, 3))
+        try:
+            merge = merge_error(sm.T_front_back, gt.T_front_back, bases)
+        except AlignmentError as err:
+            skipped["merge"] = str(err)
+    else:
+        skipped["merge"] = f"{SIDE_MERGE_JSON} absent"
+
+    with_scale = _rgb_only(result_dir) if scale_alignment is None else scale_alignment
+    sides: dict[str, TrajectoryError | None] = {}
+    for name, side in gt.sides.items():
+        path = result_dir / trajectory_filename(name)
+        if not path.is_file():
+            sides[name] = None
+            skipped[f"sides.{name}"] = f"{path.name} absent"
+            continue
+        te = trajectory_error(read_tum(path, side.frame), side.trajectory, trajectory_max_dt_s, with_scale)
+        sides[name] = te
+        if te.drift_percent is None:
+            skipped[f"sides.{name}"] = f"{te.n_associated} poses associated within {trajectory_max_dt_s * 1000:g} ms"
+
+    timings = None
+    if (result_dir / TIMINGS_JSON).is_file():
+        timings = _timings_part(gt, result_dir)
+    else:
+        skipped["timings"] = f"{TIMINGS_JSON} absent"
+
+    return EvaluationReport(
+        truth_path=Path(truth_path),
+        result_dir=result_dir,
+        match_radius_m=float(match_radius_m),
+        matching=matching,
+        traits=traits,
+        fruit_count=fruit,
+        double_count=dc,
+        merge=merge,
+        sides=sides,
+        timings=timings,
+        pairs=pairs,
+        skipped=skipped,
+    )

@@ -1,0 +1,228 @@
+"""Pure metric functions on arrays (definitions: docs/results.md, "Metric definitions").
+
+Each returns a frozen dataclass whose field names (with their units) are the
+keys the evaluation report serialises.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+from scipy.optimize import linear_sum_assignment
+from scipy.spatial import cKDTree
+
+from orchard_mapping.core.geometry import (
+    decompose_similarity,
+    path_length,
+    pose_matrices,
+    rotation_angle_deg,
+    transform_points,
+    umeyama,
+)
+from orchard_mapping.core.types import StampedTrajectory
+from orchard_mapping.errors import AlignmentError
+
+__all__ = [
+    "DoubleCount",
+    "MergeError",
+    "TrajectoryError",
+    "TreeMatching",
+    "associate_stamps",
+    "double_count",
+    "match_trees",
+    "merge_error",
+    "trajectory_error",
+]
+
+
+@dataclass(frozen=True)
+class TreeMatching:
+    """One-to-one assignment of estimated trees to true trees."""
+
+    true_index: np.ndarray  # (K,) int, into the true trees
+    est_index: np.ndarray  # (K,) int, into the estimated trees
+    distance_m: np.ndarray  # (K,) m, 3D
+    missed: np.ndarray  # (M,) int, true trees without an estimate
+    false: np.ndarray  # (P,) int, estimates without a true tree
+
+
+def match_trees(true_xyz: np.ndarray, est_xyz: np.ndarray, radius_m: float) -> TreeMatching:
+    """Hungarian assignment on 3D distance (T, 3) x (E, 3); pairs farther than radius_m are dropped."""
+    true_xyz = np.asarray(true_xyz, dtype=float).reshape(-1, 3)
+    est_xyz = np.asarray(est_xyz, dtype=float).reshape(-1, 3)
+    d = np.linalg.norm(true_xyz[:, None, :] - est_xyz[None, :, :], axis=2)  # (T, E)
+    if d.size:
+        big = 1e6 * (1.0 + float(d.max()))
+        rows, cols = linear_sum_assignment(np.where(d <= radius_m, d, big))
+        keep = d[rows, cols] <= radius_m
+        rows, cols = rows[keep], cols[keep]
+    else:
+        rows = cols = np.zeros(0, dtype=int)
+    return TreeMatching(
+        true_index=rows,
+        est_index=cols,
+        distance_m=d[rows, cols] if d.size else np.zeros(0),
+        missed=np.setdiff1d(np.arange(true_xyz.shape[0]), rows),
+        false=np.setdiff1d(np.arange(est_xyz.shape[0]), cols),
+    )
+
+
+@dataclass(frozen=True)
+class DoubleCount:
+    """Estimated fruit vs true fruit (both in map)."""
+
+    estimated: int  # estimated fruit positions
+    matched: int  # estimates whose nearest true fruit is within the gate
+    unique_true: int  # distinct true fruit claimed
+    duplicates: int  # estimates whose true fruit was already claimed by another estimate
+    false: int  # estimates with no true fruit within the gate
+    rate_percent: float | None  # duplicates / estimated x 100
+    gate_factor: float  # gate = gate_factor x the true fruit's radius
+
+
+def double_count(
+    est_xyz: np.ndarray, true_xyz: np.ndarray, true_radius_m: np.ndarray, gate_factor: float = 1.5
+) -> DoubleCount:
+    """Each estimate claims its nearest true fruit if within gate_factor x that fruit's radius.
+
+    A true fruit claimed by k > 1 estimates contributes k - 1 duplicates
+    (independent of the order of the estimates).
+    """
+    est_xyz = np.asarray(est_xyz, dtype=float).reshape(-1, 3)
+    true_xyz = np.asarray(true_xyz, dtype=float).reshape(-1, 3)
+    radii = np.asarray(true_radius_m, dtype=float).reshape(-1)
+    n = est_xyz.shape[0]
+    if n == 0 or true_xyz.shape[0] == 0:
+        return DoubleCount(n, 0, 0, 0, n, 0.0 if n else None, gate_factor)
+    dist, idx = cKDTree(true_xyz).query(est_xyz)  # (n,), (n,)
+    hit = dist <= gate_factor * radii[idx]
+    claimed = np.bincount(idx[hit], minlength=true_xyz.shape[0])  # (F,)
+    unique = int(np.count_nonzero(claimed))
+    dup = int(hit.sum()) - unique
+    return DoubleCount(
+        estimated=n,
+        matched=int(hit.sum()),
+        unique_true=unique,
+        duplicates=dup,
+        false=int(n - hit.sum()),
+        rate_percent=100.0 * dup / n,
+        gate_factor=gate_factor,
+    )
+
+
+@dataclass(frozen=True)
+class MergeError:
+    """Estimated vs true T_front_back."""
+
+    rotation_error_deg: float  # deg, angle of R_true^T R_est (scale removed)
+    translation_error_mm: float  # mm, mean |T_est p - T_true p| over true trunk bases p in odom_back
+    max_translation_error_mm: float  # mm, the largest of those
+    n_points: int  # trunk bases used
+    scale: float  # estimated scale s (1 = rigid)
+    scale_error_percent: float | None  # (s - 1) x 100; None when the estimate is rigid
+
+
+def merge_error(T_est: np.ndarray, T_true: np.ndarray, points_back: np.ndarray) -> MergeError:
+    """Compare two odom_back -> odom_front transforms (4, 4); points_back (P, 3) m in odom_back."""
+    est = decompose_similarity(T_est)
+    true = decompose_similarity(T_true)
+    pts = np.asarray(points_back, dtype=float).reshape(-1, 3)
+    if pts.shape[0] == 0:
+        raise AlignmentError("merge error needs at least one trunk base point")
+    err = np.linalg.norm(transform_points(T_est, pts) - transform_points(T_true, pts), axis=1)  # (P,)
+    rigid = abs(est.s - 1.0) < 1e-9
+    return MergeError(
+        rotation_error_deg=rotation_angle_deg(true.R.T @ est.R),
+        translation_error_mm=1000.0 * float(err.mean()),
+        max_translation_error_mm=1000.0 * float(err.max()),
+        n_points=int(pts.shape[0]),
+        scale=float(est.s),
+        scale_error_percent=None if rigid else 100.0 * (est.s - 1.0),
+    )
+
+
+def associate_stamps(est_stamps: np.ndarray, true_stamps: np.ndarray, max_dt_s: float) -> tuple[np.ndarray, np.ndarray]:
+    """Indices (i_est, i_true) pairing each estimated stamp with the nearest true stamp within max_dt_s.
+
+    Both stamp arrays must increase. Each true stamp is used at most once
+    (the first estimate keeps it).
+    """
+    est = np.asarray(est_stamps, dtype=float).reshape(-1)
+    tru = np.asarray(true_stamps, dtype=float).reshape(-1)
+    if est.size == 0 or tru.size == 0:
+        return np.zeros(0, dtype=int), np.zeros(0, dtype=int)
+    hi = np.clip(np.searchsorted(tru, est), 1, tru.size - 1) if tru.size > 1 else np.zeros(est.size, dtype=int)
+    lo = np.maximum(hi - 1, 0)
+    j = np.where(np.abs(tru[lo] - est) <= np.abs(tru[hi] - est), lo, hi)  # (N,)
+    ok = np.abs(tru[j] - est) <= max_dt_s
+    i_est, j = np.flatnonzero(ok), j[ok]
+    _, first = np.unique(j, return_index=True)
+    first.sort()
+    return i_est[first], j[first]
+
+
+@dataclass(frozen=True)
+class TrajectoryError:
+    """One side's estimated keyframe trajectory vs the true camera trajectory."""
+
+    n_associated: int  # poses paired by stamp
+    path_length_m: float | None  # m, true path over the associated span
+    drift_mm: float | None  # mm, last position error after exact first-pose alignment
+    drift_percent: float | None  # drift / path length x 100
+    final_rotation_error_deg: float | None  # deg, last orientation error after first-pose alignment
+    ate_mm: float | None  # mm, position RMSE after the best alignment
+    ate_percent: float | None  # ATE / path length x 100
+    alignment: str  # "se3" (rigid) or "sim3" (with scale) for the ATE
+    alignment_scale: float | None  # fitted scale (1 for se3)
+
+
+def trajectory_error(
+    est: StampedTrajectory, true: StampedTrajectory, max_dt_s: float = 0.005, with_scale: bool = False
+) -> TrajectoryError:
+    """Drift (first pose aligned exactly, nothing fitted) and ATE (Umeyama) of `est` against `true`.
+
+    Needs 2 associated poses for the drift and 3 for the ATE; otherwise the
+    values are None.
+    """
+    order_t = np.argsort(true.stamps, kind="stable")
+    order_e = np.argsort(est.stamps, kind="stable")
+    i_s, j_s = associate_stamps(np.asarray(est.stamps)[order_e], np.asarray(true.stamps)[order_t], max_dt_s)
+    i, j = order_e[i_s], order_t[j_s]
+    n = int(i.size)
+    none = TrajectoryError(n, None, None, None, None, None, None, "sim3" if with_scale else "se3", None)
+    if n < 2:
+        return none
+    T_est = pose_matrices(np.asarray(est.positions)[i], np.asarray(est.quaternions)[i])  # (n, 4, 4)
+    T_true = pose_matrices(np.asarray(true.positions)[j], np.asarray(true.quaternions)[j])  # (n, 4, 4)
+    length = path_length(np.asarray(true.positions)[order_t][j_s.min() : j_s.max() + 1])
+    # Drift: T_true0 inv(T_est0) applied to every estimated pose.
+    T_align = T_true[0] @ np.linalg.inv(T_est[0])
+    last = T_align @ T_est[-1]
+    drift = float(np.linalg.norm(last[:3, 3] - T_true[-1][:3, 3]))
+    rot = rotation_angle_deg(T_true[-1][:3, :3].T @ last[:3, :3])
+
+    def pct(v: float) -> float | None:
+        return 100.0 * v / length if length > 1e-9 else None
+
+    ate_mm = ate_pct = scale = None
+    if n >= 3:
+        try:
+            sim = umeyama(T_est[:, :3, 3], T_true[:, :3, 3], with_scale=with_scale)
+        except AlignmentError:
+            sim = None
+        if sim is not None:
+            res = transform_points(sim.matrix(), T_est[:, :3, 3]) - T_true[:, :3, 3]  # (n, 3)
+            rmse = float(np.sqrt(np.mean(np.sum(res**2, axis=1))))
+            ate_mm, ate_pct, scale = 1000.0 * rmse, pct(rmse), float(sim.s)
+    return TrajectoryError(
+        n_associated=n,
+        path_length_m=length,
+        drift_mm=1000.0 * drift,
+        drift_percent=pct(drift),
+        final_rotation_error_deg=rot,
+        ate_mm=ate_mm,
+        ate_percent=ate_pct,
+        alignment=none.alignment,
+        alignment_scale=scale,
+    )

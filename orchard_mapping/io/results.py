@@ -1,0 +1,574 @@
+"""Writers and readers of the result folder (contract: docs/results.md).
+
+Every writer is atomic: the text is serialised first, written to a temporary
+file in the target's folder, fsynced and renamed over the target, so a reader
+never sees a partial file and a failed write leaves the previous content.
+Readers validate and raise `ResultFormatError` naming the file and the field
+(or line).
+"""
+
+from __future__ import annotations
+
+import contextlib
+import csv
+import dataclasses
+import io
+import json
+import math
+import os
+import tempfile
+from collections.abc import Iterable, Mapping
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+from orchard_mapping.core.types import StampedTrajectory
+from orchard_mapping.errors import ResultFormatError
+
+__all__ = [
+    "RESULT_SCHEMA",
+    "SIDE_MERGE_JSON",
+    "TIMINGS_JSON",
+    "TREES_CSV",
+    "TREES_CSV_COLUMNS",
+    "TREES_FRAMES",
+    "TREES_JSON",
+    "ResultTree",
+    "SideMerge",
+    "Timings",
+    "atomic_write_json",
+    "atomic_write_text",
+    "read_side_merge",
+    "read_timings",
+    "read_trees",
+    "read_trees_csv",
+    "read_tum",
+    "to_jsonable",
+    "trajectory_filename",
+    "write_side_merge",
+    "write_timings",
+    "write_trees",
+    "write_tum",
+]
+
+RESULT_SCHEMA = "orchard_mapping.result/1"
+TREES_JSON = "trees.json"
+TREES_CSV = "trees.csv"
+SIDE_MERGE_JSON = "side_merge.json"
+TIMINGS_JSON = "timings.json"
+TREES_CSV_COLUMNS = (
+    "id",
+    "x_m",
+    "y_m",
+    "z_m",
+    "trunk_diameter_m",
+    "height_m",
+    "canopy_volume_m3",
+    "fruit_count",
+    "flags",
+)
+TREES_FRAMES = ("map", "odom_front")  # frames trees.json may state (map == odom_front after merging)
+_TREE_KEYS = {
+    "id",
+    "position",
+    "trunk_diameter_m",
+    "height_m",
+    "canopy_volume_m3",
+    "fruit_count",
+    "fruit_positions",
+    "per_side",
+    "flags",
+}
+
+
+def trajectory_filename(side: str) -> str:
+    """`trajectory_<side>.tum`."""
+    return f"trajectory_{side}.tum"
+
+
+# ---------------------------------------------------------------- atomic writing
+
+
+def to_jsonable(obj: Any) -> Any:
+    """Dataclasses, numpy arrays/scalars, tuples and paths -> plain JSON values."""
+    if dataclasses.is_dataclass(obj) and not isinstance(obj, type):
+        return {f.name: to_jsonable(getattr(obj, f.name)) for f in dataclasses.fields(obj)}
+    if isinstance(obj, Mapping):
+        return {str(k): to_jsonable(v) for k, v in obj.items()}
+    if isinstance(obj, np.ndarray):
+        return to_jsonable(obj.tolist())
+    if isinstance(obj, np.generic):
+        return obj.item()
+    if isinstance(obj, (list, tuple)):
+        return [to_jsonable(v) for v in obj]
+    if isinstance(obj, Path):
+        return str(obj)
+    return obj
+
+
+def atomic_write_text(path: str | Path, text: str) -> Path:
+    """Write `text` (UTF-8) to `path` via a temporary file in the same folder, fsync, rename."""
+    path = Path(path)
+    path.parent.mkdir(parents=True, exist_ok=True)
+    fd, tmp = tempfile.mkstemp(prefix=f".{path.name}.", suffix=".tmp", dir=path.parent)
+    try:
+        with os.fdopen(fd, "w", encoding="utf-8", newline="") as f:
+            f.write(text)
+            f.flush()
+            os.fsync(f.fileno())
+        os.chmod(tmp, 0o644)
+        os.replace(tmp, path)
+    except BaseException:
+        with contextlib.suppress(FileNotFoundError):
+            os.unlink(tmp)
+        raise
+    with contextlib.suppress(OSError):  # make the rename durable where the OS allows it
+        dir_fd = os.open(path.parent, os.O_RDONLY)
+        try:
+            os.fsync(dir_fd)
+        finally:
+            os.close(dir_fd)
+    return path
+
+
+def _dumps(obj: Any, path: Path) -> str:
+    try:
+        return json.dumps(to_jsonable(obj), indent=2, allow_nan=False) + "\n"
+    except (TypeError, ValueError) as err:
+        raise ResultFormatError(f"{path}: cannot serialise as JSON: {err}") from err
+
+
+def atomic_write_json(path: str | Path, obj: Any) -> Path:
+    """Serialise `obj` (strict JSON: no NaN) first, then write it atomically."""
+    path = Path(path)
+    return atomic_write_text(path, _dumps(obj, path))
+
+
+def _load_json(path: Path) -> Any:
+    try:
+        return json.loads(path.read_text(encoding="utf-8"))
+    except FileNotFoundError as err:
+        raise ResultFormatError(f"{path}: file not found") from err
+    except (OSError, UnicodeDecodeError) as err:
+        raise ResultFormatError(f"{path}: cannot read: {err}") from err
+    except json.JSONDecodeError as err:
+        raise ResultFormatError(f"{path}: not valid JSON: {err}") from err
+
+
+# ---------------------------------------------------------------- validation helpers
+
+
+def _fail(path: Path, where: str, msg: str) -> ResultFormatError:
+    return ResultFormatError(f"{path}: field '{where}': {msg}")
+
+
+def _get(obj: Mapping[str, Any], key: str, path: Path, where: str) -> Any:
+    if key not in obj:
+        raise _fail(path, f"{where}.{key}" if where else key, "missing")
+    return obj[key]
+
+
+def _mapping(v: Any, path: Path, where: str) -> Mapping[str, Any]:
+    if not isinstance(v, Mapping):
+        raise _fail(path, where or "<root>", f"expected an object, got {type(v).__name__}")
+    return v
+
+
+def _number(v: Any, path: Path, where: str, *, nullable: bool = False, minimum: float | None = None) -> float | None:
+    if v is None and nullable:
+        return None
+    if isinstance(v, bool) or not isinstance(v, (int, float)) or not math.isfinite(v):
+        raise _fail(path, where, f"expected a finite number{' or null' if nullable else ''}, got {v!r}")
+    if minimum is not None and v < minimum:
+        raise _fail(path, where, f"must be >= {minimum}, got {v!r}")
+    return float(v)
+
+
+def _integer(v: Any, path: Path, where: str, *, nullable: bool = False, minimum: int | None = None) -> int | None:
+    if v is None and nullable:
+        return None
+    if isinstance(v, float) and v.is_integer():
+        v = int(v)
+    if isinstance(v, bool) or not isinstance(v, int):
+        raise _fail(path, where, f"expected an integer{' or null' if nullable else ''}, got {v!r}")
+    if minimum is not None and v < minimum:
+        raise _fail(path, where, f"must be >= {minimum}, got {v!r}")
+    return int(v)
+
+
+def _array(v: Any, shape: tuple[int, ...], path: Path, where: str) -> np.ndarray:
+    """Finite float array of `shape` (-1 = any length)."""
+    try:
+        a = np.asarray(v, dtype=float)
+    except (TypeError, ValueError) as err:
+        raise _fail(path, where, f"expected numbers of shape {shape}: {err}") from err
+    if a.size == 0 and -1 in shape:
+        a = a.reshape(tuple(0 if s == -1 else s for s in shape))
+    if a.ndim != len(shape) or any(s != -1 and s != n for s, n in zip(shape, a.shape, strict=True)):
+        raise _fail(path, where, f"expected shape {shape}, got {a.shape}")
+    if not np.all(np.isfinite(a)):
+        raise _fail(path, where, "contains a non-finite value")
+    return a
+
+
+# ---------------------------------------------------------------- trees
+
+
+@dataclass(frozen=True)
+class ResultTree:
+    """One estimated tree of trees.json (frame `map`); None = not measured."""
+
+    id: int
+    position: tuple[float, float, float]  # m, map: trunk axis at local ground
+    trunk_diameter_m: float | None = None  # m
+    height_m: float | None = None  # m
+    canopy_volume_m3: float | None = None  # m^3
+    fruit_count: int | None = None
+    fruit_positions: np.ndarray | None = None  # (F, 3) m, map; optional
+    per_side: Mapping[str, Any] | None = None  # optional {"front": {...}, "back": {...}}
+    flags: tuple[str, ...] = ()
+    extra: Mapping[str, Any] = field(default_factory=dict)  # other keys, kept as written
+
+    def to_json(self) -> dict[str, Any]:
+        out: dict[str, Any] = {
+            "id": self.id,
+            "position": list(self.position),
+            "trunk_diameter_m": self.trunk_diameter_m,
+            "height_m": self.height_m,
+            "canopy_volume_m3": self.canopy_volume_m3,
+            "fruit_count": self.fruit_count,
+        }
+        if self.fruit_positions is not None:
+            out["fruit_positions"] = np.asarray(self.fruit_positions, dtype=float).reshape(-1, 3)
+        if self.per_side is not None:
+            out["per_side"] = self.per_side
+        if self.flags:
+            out["flags"] = list(self.flags)
+        out.update(self.extra)
+        return to_jsonable(out)
+
+
+def _tree_from_json(obj: Any, path: Path, where: str) -> ResultTree:
+    t = _mapping(obj, path, where)
+    pos = _array(_get(t, "position", path, where), (3,), path, f"{where}.position")
+    fruit = None
+    if t.get("fruit_positions") is not None:
+        fruit = _array(t["fruit_positions"], (-1, 3), path, f"{where}.fruit_positions")
+    per_side = t.get("per_side")
+    if per_side is not None:
+        _mapping(per_side, path, f"{where}.per_side")
+    flags = t.get("flags") or []
+    if not isinstance(flags, list) or not all(isinstance(f, str) for f in flags):
+        raise _fail(path, f"{where}.flags", f"expected a list of strings, got {flags!r}")
+    return ResultTree(
+        id=_integer(_get(t, "id", path, where), path, f"{where}.id"),  # type: ignore[arg-type]
+        position=(float(pos[0]), float(pos[1]), float(pos[2])),
+        trunk_diameter_m=_number(
+            t.get("trunk_diameter_m"), path, f"{where}.trunk_diameter_m", nullable=True, minimum=0
+        ),
+        height_m=_number(t.get("height_m"), path, f"{where}.height_m", nullable=True, minimum=0),
+        canopy_volume_m3=_number(
+            t.get("canopy_volume_m3"), path, f"{where}.canopy_volume_m3", nullable=True, minimum=0
+        ),
+        fruit_count=_integer(t.get("fruit_count"), path, f"{where}.fruit_count", nullable=True, minimum=0),
+        fruit_positions=fruit,
+        per_side=per_side,
+        flags=tuple(flags),
+        extra={k: v for k, v in t.items() if k not in _TREE_KEYS},
+    )
+
+
+def _trees_from_document(doc: Any, path: Path) -> list[ResultTree]:
+    d = _mapping(doc, path, "")
+    schema = _get(d, "schema", path, "")
+    if schema != RESULT_SCHEMA:
+        raise _fail(path, "schema", f"expected {RESULT_SCHEMA!r}, got {schema!r}")
+    frame = _get(d, "frame", path, "")
+    if frame not in TREES_FRAMES:
+        raise _fail(path, "frame", f"expected one of {TREES_FRAMES}, got {frame!r}")
+    trees = _get(d, "trees", path, "")
+    if not isinstance(trees, list):
+        raise _fail(path, "trees", f"expected a list, got {type(trees).__name__}")
+    out = [_tree_from_json(t, path, f"trees[{i}]") for i, t in enumerate(trees)]
+    ids = [t.id for t in out]
+    if len(set(ids)) != len(ids):
+        raise _fail(path, "trees[].id", f"ids are not unique: {sorted(ids)}")
+    return out
+
+
+def _as_tree_json(tree: ResultTree | Mapping[str, Any] | Any) -> Any:
+    if isinstance(tree, ResultTree):
+        return tree.to_json()
+    return to_jsonable(tree)
+
+
+def _csv_value(v: Any) -> str:
+    if v is None:
+        return ""
+    if isinstance(v, float):
+        return repr(v)
+    return str(v)
+
+
+def write_trees(
+    result_dir: str | Path, trees: Iterable[ResultTree | Mapping[str, Any] | Any], frame: str = "map"
+) -> tuple[Path, Path]:
+    """Write trees.json and trees.csv into `result_dir` from ResultTree, dicts or dataclasses.
+
+    The trees are validated first (ResultFormatError, nothing written).
+    Returns (json path, csv path).
+    """
+    result_dir = Path(result_dir)
+    json_path, csv_path = result_dir / TREES_JSON, result_dir / TREES_CSV
+    doc = {"schema": RESULT_SCHEMA, "frame": frame, "trees": [_as_tree_json(t) for t in trees]}
+    text = _dumps(doc, json_path)
+    parsed = _trees_from_document(json.loads(text), json_path)
+    buf = io.StringIO()
+    w = csv.writer(buf, lineterminator="\n")
+    w.writerow(TREES_CSV_COLUMNS)
+    for t in parsed:
+        w.writerow(
+            [t.id, *(repr(p) for p in t.position)]
+            + [_csv_value(v) for v in (t.trunk_diameter_m, t.height_m, t.canopy_volume_m3, t.fruit_count)]
+            + [";".join(t.flags)]
+        )
+    atomic_write_text(json_path, text)
+    atomic_write_text(csv_path, buf.getvalue())
+    return json_path, csv_path
+
+
+def read_trees(path: str | Path) -> list[ResultTree]:
+    """Read and validate trees.json (a file, or a result folder holding it)."""
+    path = Path(path)
+    if path.is_dir():
+        path = path / TREES_JSON
+    return _trees_from_document(_load_json(path), path)
+
+
+def read_trees_csv(path: str | Path) -> list[ResultTree]:
+    """Read trees.csv (a file, or a result folder holding it); empty cells = None."""
+    path = Path(path)
+    if path.is_dir():
+        path = path / TREES_CSV
+    try:
+        text = path.read_text(encoding="utf-8")
+    except FileNotFoundError as err:
+        raise ResultFormatError(f"{path}: file not found") from err
+    rows = list(csv.reader(io.StringIO(text)))
+    if not rows or tuple(rows[0]) != TREES_CSV_COLUMNS:
+        raise ResultFormatError(f"{path}:1: expected header {','.join(TREES_CSV_COLUMNS)}")
+    out = []
+    for lineno, row in enumerate(rows[1:], start=2):
+        if not row:
+            continue
+        if len(row) != len(TREES_CSV_COLUMNS):
+            raise ResultFormatError(f"{path}:{lineno}: expected {len(TREES_CSV_COLUMNS)} columns, got {len(row)}")
+        try:
+            vals = [None if c == "" else float(c) for c in row[1:8]]
+            tid = int(row[0])
+        except ValueError as err:
+            raise ResultFormatError(f"{path}:{lineno}: {err}") from err
+        if any(v is None for v in vals[:3]) or not all(math.isfinite(v) for v in vals if v is not None):
+            raise ResultFormatError(f"{path}:{lineno}: position missing or a value is not finite")
+        out.append(
+            ResultTree(
+                id=tid,
+                position=(vals[0], vals[1], vals[2]),  # type: ignore[arg-type]
+                trunk_diameter_m=vals[3],
+                height_m=vals[4],
+                canopy_volume_m3=vals[5],
+                fruit_count=None if vals[6] is None else int(vals[6]),
+                flags=tuple(f for f in row[8].split(";") if f),
+            )
+        )
+    return out
+
+
+# ---------------------------------------------------------------- TUM trajectories
+
+
+def _check_trajectory(traj: StampedTrajectory, path: Path) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    stamps = np.asarray(traj.stamps, dtype=float).reshape(-1)
+    pos = np.asarray(traj.positions, dtype=float)
+    quat = np.asarray(traj.quaternions, dtype=float)
+    n = stamps.shape[0]
+    if pos.shape != (n, 3) or quat.shape != (n, 4):
+        raise ResultFormatError(f"{path}: trajectory shapes {stamps.shape}, {pos.shape}, {quat.shape} do not agree")
+    if not (np.all(np.isfinite(stamps)) and np.all(np.isfinite(pos)) and np.all(np.isfinite(quat))):
+        raise ResultFormatError(f"{path}: trajectory holds a non-finite value")
+    if np.any(np.linalg.norm(quat, axis=1) < 1e-12):
+        raise ResultFormatError(f"{path}: trajectory holds a zero quaternion")
+    if np.any(np.diff(stamps) <= 0.0):
+        raise ResultFormatError(f"{path}: trajectory stamps are not strictly increasing")
+    return stamps, pos, quat
+
+
+def write_tum(path: str | Path, traj: StampedTrajectory) -> Path:
+    """Write `stamp tx ty tz qx qy qz qw` lines (s, m, unit quaternion) with a `#` header."""
+    path = Path(path)
+    stamps, pos, quat = _check_trajectory(traj, path)
+    quat = quat / np.linalg.norm(quat, axis=1, keepdims=True)
+    lines = [f"# stamp tx ty tz qx qy qz qw (camera in {traj.frame_id or 'odom'})"]
+    rows = np.column_stack([stamps, pos, quat])  # (N, 8)
+    lines += [" ".join(repr(float(v)) for v in row) for row in rows]
+    return atomic_write_text(path, "\n".join(lines) + "\n")
+
+
+def read_tum(path: str | Path, frame_id: str = "") -> StampedTrajectory:
+    """Read a TUM file; `#` comments and blank lines are skipped; quaternions normalised.
+
+    Raises ResultFormatError naming `file:line` for a malformed line, and for
+    an empty trajectory or stamps that do not increase.
+    """
+    path = Path(path)
+    try:
+        text = path.read_text(encoding="utf-8")
+    except FileNotFoundError as err:
+        raise ResultFormatError(f"{path}: file not found") from err
+    except (OSError, UnicodeDecodeError) as err:
+        raise ResultFormatError(f"{path}: cannot read: {err}") from err
+    rows: list[list[float]] = []
+    last = -math.inf
+    for lineno, line in enumerate(text.splitlines(), start=1):
+        line = line.strip()
+        if not line or line.startswith("#"):
+            continue
+        parts = line.replace(",", " ").split()
+        if len(parts) != 8:
+            raise ResultFormatError(
+                f"{path}:{lineno}: expected 8 numbers 'stamp tx ty tz qx qy qz qw', got {len(parts)}"
+            )
+        try:
+            vals = [float(p) for p in parts]
+        except ValueError as err:
+            raise ResultFormatError(f"{path}:{lineno}: not a number: {err}") from err
+        if not all(math.isfinite(v) for v in vals):
+            raise ResultFormatError(f"{path}:{lineno}: non-finite value")
+        if math.fsum(v * v for v in vals[4:]) < 1e-24:
+            raise ResultFormatError(f"{path}:{lineno}: zero quaternion")
+        if vals[0] <= last:
+            raise ResultFormatError(f"{path}:{lineno}: stamp {vals[0]!r} does not increase")
+        last = vals[0]
+        rows.append(vals)
+    if not rows:
+        raise ResultFormatError(f"{path}: no poses")
+    a = np.asarray(rows)  # (N, 8)
+    quat = a[:, 4:8] / np.linalg.norm(a[:, 4:8], axis=1, keepdims=True)
+    return StampedTrajectory(stamps=a[:, 0].copy(), positions=a[:, 1:4].copy(), quaternions=quat, frame_id=frame_id)
+
+
+# ---------------------------------------------------------------- side_merge.json
+
+
+@dataclass(frozen=True)
+class SideMerge:
+    """side_merge.json: the similarity mapping odom_back points into odom_front (map)."""
+
+    T_front_back: np.ndarray  # (4, 4), 3x3 block = s R
+    scale: float  # s
+    residuals: Mapping[str, Any] = field(default_factory=dict)
+    overlap: Any = None
+    extra: Mapping[str, Any] = field(default_factory=dict)
+
+
+def _similarity_scale(T: np.ndarray, path: Path, where: str) -> float:
+    if not np.allclose(T[3], [0.0, 0.0, 0.0, 1.0], atol=1e-9):
+        raise _fail(path, where, f"last row must be [0, 0, 0, 1], got {T[3].tolist()}")
+    det = float(np.linalg.det(T[:3, :3]))
+    if det <= 1e-12:
+        raise _fail(path, where, f"3x3 block is singular or a reflection (det = {det:.3g})")
+    return det ** (1.0 / 3.0)
+
+
+def write_side_merge(
+    path: str | Path,
+    T_front_back: np.ndarray,
+    *,
+    residuals: Mapping[str, Any] | None = None,
+    overlap: Any = None,
+    **extra: Any,
+) -> Path:
+    """Write side_merge.json; `scale` = cbrt(det) of the 3x3 block of T_front_back."""
+    path = Path(path)
+    T = _array(T_front_back, (4, 4), path, "T_front_back")
+    doc = {
+        "T_front_back": T,
+        "scale": _similarity_scale(T, path, "T_front_back"),
+        "residuals": dict(residuals or {}),
+        "overlap": overlap,
+        **extra,
+    }
+    return atomic_write_json(path, doc)
+
+
+def read_side_merge(path: str | Path) -> SideMerge:
+    """Read and validate side_merge.json (a file, or a result folder holding it)."""
+    path = Path(path)
+    if path.is_dir():
+        path = path / SIDE_MERGE_JSON
+    d = _mapping(_load_json(path), path, "")
+    T = _array(_get(d, "T_front_back", path, ""), (4, 4), path, "T_front_back")
+    s_matrix = _similarity_scale(T, path, "T_front_back")
+    s = _number(d.get("scale", s_matrix), path, "scale", minimum=0.0)
+    assert s is not None
+    if abs(s - s_matrix) > 1e-4 * s_matrix:
+        raise _fail(path, "scale", f"{s!r} disagrees with the scale of T_front_back ({s_matrix:.6g})")
+    residuals = d.get("residuals") or {}
+    _mapping(residuals, path, "residuals")
+    known = {"T_front_back", "scale", "residuals", "overlap"}
+    return SideMerge(
+        T_front_back=T,
+        scale=s,
+        residuals=residuals,
+        overlap=d.get("overlap"),
+        extra={k: v for k, v in d.items() if k not in known},
+    )
+
+
+# ---------------------------------------------------------------- timings.json
+
+
+@dataclass(frozen=True)
+class Timings:
+    """timings.json: processing seconds per stage (in run order)."""
+
+    stages: Mapping[str, float]  # s
+    frames: int | None = None
+    recording_duration_s: float | None = None  # s
+
+    @property
+    def total_s(self) -> float:
+        return float(math.fsum(self.stages.values()))
+
+
+def write_timings(
+    path: str | Path, stages: Mapping[str, float], frames: int | None = None, recording_duration_s: float | None = None
+) -> Path:
+    """Write timings.json (validated first)."""
+    path = Path(path)
+    doc = {
+        "stages": {str(k): float(v) for k, v in stages.items()},
+        "frames": frames,
+        "recording_duration_s": recording_duration_s,
+    }
+    _timings_from_document(json.loads(_dumps(doc, path)), path)
+    return atomic_write_json(path, doc)
+
+
+def _timings_from_document(doc: Any, path: Path) -> Timings:
+    d = _mapping(doc, path, "")
+    stages = _mapping(_get(d, "stages", path, ""), path, "stages")
+    parsed = {str(k): _number(v, path, f"stages.{k}", minimum=0.0) for k, v in stages.items()}
+    frames = _integer(d.get("frames"), path, "frames", nullable=True, minimum=0)
+    rec = _number(d.get("recording_duration_s"), path, "recording_duration_s", nullable=True, minimum=0.0)
+    return Timings(stages=parsed, frames=frames, recording_duration_s=rec)  # type: ignore[arg-type]
+
+
+def read_timings(path: str | Path) -> Timings:
+    """Read and validate timings.json (a file, or a result folder holding it)."""
+    path = Path(path)
+    if path.is_dir():
+        path = path / TIMINGS_JSON
+    return _timings_from_document(_load_json(path), path)

@@ -1,0 +1,333 @@
+"""evaluate_result on a result folder derived from the synthetic truth: exact, then perturbed."""
+
+from __future__ import annotations
+
+import dataclasses
+import json
+import types
+from collections.abc import Callable
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+import pytest
+from rich.console import Console
+from scipy.spatial.transform import Rotation
+
+from orchard_mapping.core.types import StampedTrajectory
+from orchard_mapping.errors import GroundTruthError, ResultFormatError
+from orchard_mapping.eval import EvaluationReport, evaluate_result
+from orchard_mapping.io.results import ResultTree, read_side_merge, read_trees, write_side_merge, write_trees, write_tum
+
+
+def _edit_trees(result_dir: Path, edit: Callable[[list[ResultTree]], list[ResultTree]]) -> None:
+    write_trees(result_dir, edit(read_trees(result_dir)))
+
+
+def _render(table: Any) -> str:
+    console = Console(record=True, width=220)
+    console.print(table)
+    return console.export_text()
+
+
+def _true_path_length(truth: dict[str, Any], side: str) -> float:
+    p = np.asarray(truth["sides"][side]["trajectory"])[:, 1:4]
+    return float(np.sum(np.sqrt(np.sum(np.diff(p, axis=0) ** 2, axis=1))))
+
+
+def test_exact_result_scores_zero(truth_path: Path, result_dir: Path) -> None:
+    rep = evaluate_result(truth_path, result_dir)
+    assert rep.matching is not None and (rep.matching.matched, rep.matching.missed, rep.matching.false) == (3, 0, 0)
+    assert rep.matching.mean_distance_m == pytest.approx(0.0, abs=1e-9)
+    assert rep.traits is not None
+    assert rep.traits.trunk_diameter_mae_mm == pytest.approx(0.0, abs=1e-9)
+    assert rep.traits.height_mae_cm == pytest.approx(0.0, abs=1e-9)
+    assert rep.traits.canopy_volume_mape_percent == pytest.approx(0.0, abs=1e-9)
+    assert rep.fruit_count is not None
+    assert (rep.fruit_count.estimated, rep.fruit_count.true_visible, rep.fruit_count.true_all) == (9, 9, 12)
+    assert rep.fruit_count.error_visible_percent == pytest.approx(0.0)
+    assert rep.fruit_count.error_all_percent == pytest.approx(-25.0)
+    assert rep.double_count is not None and rep.double_count.rate_percent == 0.0 and rep.double_count.false == 0
+    assert rep.merge is not None
+    assert rep.merge.rotation_error_deg == pytest.approx(0.0, abs=1e-6)
+    assert rep.merge.translation_error_mm == pytest.approx(0.0, abs=1e-6)
+    assert rep.merge.scale_error_percent is None
+    for side in ("front", "back"):
+        e = rep.sides[side]
+        assert e is not None and e.n_associated == 11 and e.alignment == "se3"
+        assert e.drift_percent == pytest.approx(0.0, abs=1e-9)
+        assert e.ate_percent == pytest.approx(0.0, abs=1e-9)
+    assert rep.timings is not None and rep.timings.total_s == pytest.approx(4.0)
+    assert rep.timings.realtime_factor == pytest.approx(1.0)
+    assert rep.skipped == {}
+    assert len(rep.pairs) == 3 and {(p.true_id, p.result_id) for p in rep.pairs} == {(0, 10), (1, 11), (2, 12)}
+
+
+def test_to_dict_is_json_with_stable_keys(truth_path: Path, result_dir: Path, tmp_path: Path) -> None:
+    full = evaluate_result(truth_path, result_dir).to_dict()
+    empty_dir = tmp_path / "empty"
+    empty_dir.mkdir()
+    empty = evaluate_result(truth_path, empty_dir).to_dict()
+    assert list(full) == list(empty)
+    assert json.loads(json.dumps(full)) == full
+    assert set(full["sides"]) == {"front", "back"}
+    assert set(full["sides"]["front"]) >= {"drift_percent", "ate_percent", "ate_mm", "n_associated"}
+    assert full["traits"]["trunk_diameter_mae_mm"] == pytest.approx(0.0, abs=1e-9)
+    assert empty["sides"] == {"front": None, "back": None} and empty["matching"] is None
+    assert set(empty["skipped"]) == {
+        "matching",
+        "traits",
+        "fruit_count",
+        "double_count",
+        "merge",
+        "sides.front",
+        "sides.back",
+        "timings",
+    }
+
+
+def test_tables_render(truth_path: Path, result_dir: Path, tmp_path: Path) -> None:
+    rep = evaluate_result(truth_path, result_dir)
+    text = _render(rep.table())
+    for name in (
+        "trunk diameter MAE",
+        "height MAE",
+        "canopy volume error",
+        "double-count rate",
+        "merge rotation error",
+        "front drift",
+        "back ATE",
+        "real-time factor",
+    ):
+        assert name in text
+    assert "metric" in text and "unit" in text and "note" in text
+    per_tree = _render(rep.per_tree_table())
+    assert "65.0 / 65.0" in per_tree  # tree 1 diameter in mm
+    empty_dir = tmp_path / "nothing"
+    empty_dir.mkdir()
+    assert "n/a" in _render(evaluate_result(truth_path, empty_dir).table())
+
+
+def test_trait_errors(truth_path: Path, result_dir: Path) -> None:
+    def perturb(trees: list[ResultTree]) -> list[ResultTree]:
+        out = [
+            dataclasses.replace(
+                t,
+                trunk_diameter_m=t.trunk_diameter_m + 0.005,
+                height_m=t.height_m + 0.10,
+                canopy_volume_m3=1.2 * t.canopy_volume_m3,
+            )
+            for t in trees
+        ]
+        out[2] = dataclasses.replace(out[2], height_m=None)
+        return out
+
+    _edit_trees(result_dir, perturb)
+    t = evaluate_result(truth_path, result_dir).traits
+    assert t is not None
+    assert t.trunk_diameter_mae_mm == pytest.approx(5.0, abs=1e-9) and t.trunk_diameter_n == 3
+    assert t.height_mae_cm == pytest.approx(10.0, abs=1e-9) and t.height_n == 2
+    assert t.canopy_volume_mape_percent == pytest.approx(20.0)
+    assert t.canopy_volume_bias_percent == pytest.approx(20.0)
+
+
+def test_fruit_count_error(truth_path: Path, result_dir: Path) -> None:
+    _edit_trees(
+        result_dir,
+        lambda ts: [dataclasses.replace(ts[0], fruit_count=5), ts[1], dataclasses.replace(ts[2], fruit_count=None)],
+    )
+    f = evaluate_result(truth_path, result_dir).fruit_count
+    assert f is not None and f.n_trees == 2
+    assert (f.estimated, f.true_visible, f.true_all) == (8, 5, 7)
+    assert f.error_visible_percent == pytest.approx(60.0)
+    assert f.error_all_percent == pytest.approx(100.0 * (8 - 7) / 7)
+
+
+def test_duplicated_fruit_is_a_double_count(truth_path: Path, result_dir: Path) -> None:
+    def dup(trees: list[ResultTree]) -> list[ResultTree]:
+        f = trees[0].fruit_positions
+        assert f is not None
+        return [dataclasses.replace(trees[0], fruit_positions=np.vstack([f, f[:1] + 0.01])), *trees[1:]]
+
+    _edit_trees(result_dir, dup)
+    d = evaluate_result(truth_path, result_dir).double_count
+    assert d is not None
+    assert (d.estimated, d.duplicates, d.unique_true, d.false) == (10, 1, 9, 0)
+    assert d.rate_percent == pytest.approx(10.0)
+
+
+def test_fruit_outside_the_gate_is_false_not_duplicate(truth_path: Path, result_dir: Path) -> None:
+    def far(trees: list[ResultTree]) -> list[ResultTree]:
+        f = trees[0].fruit_positions
+        assert f is not None
+        return [dataclasses.replace(trees[0], fruit_positions=np.vstack([f, f[:1] + [0.07, 0.0, 0.0]])), *trees[1:]]
+
+    _edit_trees(result_dir, far)  # 7 cm > 1.5 x 4 cm
+    d = evaluate_result(truth_path, result_dir).double_count
+    assert d is not None and (d.duplicates, d.false) == (0, 1) and d.rate_percent == 0.0
+
+
+def test_missing_extra_and_far_trees(truth_path: Path, result_dir: Path) -> None:
+    original = read_trees(result_dir)
+    write_trees(result_dir, original[1:])
+    m = evaluate_result(truth_path, result_dir).matching
+    assert m is not None and (m.matched, m.missed, m.false, m.missed_ids) == (2, 1, 0, (0,))
+
+    extra = dataclasses.replace(original[0], id=99, position=(30.0, 0.0, 0.0))
+    write_trees(result_dir, [*original, extra])
+    m = evaluate_result(truth_path, result_dir).matching
+    assert m is not None and (m.matched, m.missed, m.false, m.false_ids) == (3, 0, 1, (99,))
+
+    p = np.array(original[2].position)
+    moved = dataclasses.replace(original[2], position=tuple(p + [0.35, 0.0, 0.0]))
+    write_trees(result_dir, [*original[:2], moved])
+    rep = evaluate_result(truth_path, result_dir, match_radius_m=0.3)
+    assert rep.matching is not None and (rep.matching.matched, rep.matching.missed, rep.matching.false) == (2, 1, 1)
+    rep = evaluate_result(truth_path, result_dir, match_radius_m=0.4)
+    assert rep.matching is not None and rep.matching.matched == 3
+    assert max(pr.distance_m for pr in rep.pairs) == pytest.approx(0.35)
+
+
+def test_merge_errors(truth_path: Path, result_dir: Path, truth: dict[str, Any]) -> None:
+    T_true = np.asarray(truth["T_front_back"])
+    path = result_dir / "side_merge.json"
+    dR = np.eye(4)
+    dR[:3, :3] = Rotation.from_rotvec(np.radians(2.0) * np.array([0.0, 0.6, 0.8])).as_matrix()
+    write_side_merge(path, T_true @ dR)
+    g = evaluate_result(truth_path, result_dir).merge
+    assert g is not None and g.rotation_error_deg == pytest.approx(2.0, abs=1e-9) and g.translation_error_mm > 1.0
+
+    T = T_true.copy()
+    T[:3, 3] += [0.010, 0.0, 0.0]
+    write_side_merge(path, T)
+    g = evaluate_result(truth_path, result_dir).merge
+    assert (
+        g is not None
+        and g.translation_error_mm == pytest.approx(10.0)
+        and g.rotation_error_deg == pytest.approx(0.0, abs=1e-6)
+    )
+
+    T = T_true.copy()
+    T[:3, :3] *= 1.02
+    write_side_merge(path, T)
+    g = evaluate_result(truth_path, result_dir).merge
+    assert g is not None and read_side_merge(result_dir).scale == pytest.approx(1.02)
+    assert g.scale_error_percent == pytest.approx(2.0) and g.rotation_error_deg == pytest.approx(0.0, abs=1e-6)
+    assert "merge scale error" in _render(evaluate_result(truth_path, result_dir).table())
+
+
+def _write_traj(result_dir: Path, side: str, stamps: Any, pos: Any, quat: Any) -> None:
+    write_tum(
+        result_dir / f"trajectory_{side}.tum", StampedTrajectory(np.asarray(stamps), np.asarray(pos), np.asarray(quat))
+    )
+
+
+def test_linear_drift_matches_the_planted_value(
+    truth_path: Path, result_dir: Path, truth: dict[str, Any], kit: types.SimpleNamespace
+) -> None:
+    kf = kit.true_trajectory(truth, "front", kit.keyframe_step)
+    d = np.array([0.03, -0.02, 0.01])
+    ramp = np.linspace(0.0, 1.0, kf.stamps.size)[:, None]
+    _write_traj(result_dir, "front", kf.stamps, kf.positions + ramp * d, kf.quaternions)
+    rep = evaluate_result(truth_path, result_dir)
+    e = rep.sides["front"]
+    assert e is not None and e.path_length_m == pytest.approx(_true_path_length(truth, "front"))
+    assert e.drift_mm == pytest.approx(1000.0 * np.linalg.norm(d))
+    assert e.drift_percent == pytest.approx(100.0 * np.linalg.norm(d) / _true_path_length(truth, "front"))
+    assert e.ate_percent is not None and 0.0 < e.ate_percent < e.drift_percent
+    back = rep.sides["back"]
+    assert back is not None and back.drift_percent == pytest.approx(0.0, abs=1e-9)
+
+
+def test_rigidly_moved_positions_have_no_ate_but_drift(
+    truth_path: Path, result_dir: Path, truth: dict[str, Any], kit: types.SimpleNamespace
+) -> None:
+    kf = kit.true_trajectory(truth, "back", kit.keyframe_step)
+    Rz = Rotation.from_euler("z", 3.0, degrees=True).as_matrix()
+    p0 = kf.positions[0]
+    moved = (kf.positions - p0) @ Rz.T + p0 + [0.5, -0.2, 0.1]  # orientations left as they were
+    _write_traj(result_dir, "back", kf.stamps, moved, kf.quaternions)
+    e = evaluate_result(truth_path, result_dir).sides["back"]
+    planted = np.linalg.norm((Rz - np.eye(3)) @ (kf.positions[-1] - p0))
+    assert e is not None and e.ate_mm == pytest.approx(0.0, abs=1e-6)
+    assert e.drift_mm == pytest.approx(1000.0 * planted) and e.drift_percent > 1.0
+
+
+def test_whole_poses_moved_rigidly_score_zero(
+    truth_path: Path, result_dir: Path, truth: dict[str, Any], kit: types.SimpleNamespace
+) -> None:
+    kf = kit.true_trajectory(truth, "front", kit.keyframe_step)
+    G = Rotation.from_euler("xyz", [20, -10, 35], degrees=True)
+    pos = G.apply(kf.positions) + [1.0, 2.0, -3.0]
+    quat = (G * Rotation.from_quat(kf.quaternions)).as_quat()
+    _write_traj(result_dir, "front", kf.stamps, pos, quat)
+    e = evaluate_result(truth_path, result_dir).sides["front"]
+    assert e is not None
+    assert e.drift_percent == pytest.approx(0.0, abs=1e-9) and e.ate_percent == pytest.approx(0.0, abs=1e-9)
+    assert e.final_rotation_error_deg == pytest.approx(0.0, abs=1e-6)
+
+
+def test_scaled_trajectory_uses_sim3_for_rgb_runs(
+    truth_path: Path, result_dir: Path, truth: dict[str, Any], kit: types.SimpleNamespace
+) -> None:
+    kf = kit.true_trajectory(truth, "front", kit.keyframe_step)
+    _write_traj(result_dir, "front", kf.stamps, 0.5 * kf.positions, kf.quaternions)
+    e = evaluate_result(truth_path, result_dir).sides["front"]
+    assert e is not None and e.alignment == "se3" and e.ate_mm > 10.0
+    (result_dir / "config.effective.yaml").write_text("input:\n  mode: rgb\n")
+    e = evaluate_result(truth_path, result_dir).sides["front"]
+    assert e is not None and e.alignment == "sim3" and e.alignment_scale == pytest.approx(2.0)
+    assert e.ate_mm == pytest.approx(0.0, abs=1e-6)
+    e = evaluate_result(truth_path, result_dir, scale_alignment=False).sides["front"]
+    assert e is not None and e.alignment == "se3"
+
+
+def test_stamp_association_tolerance(
+    truth_path: Path, result_dir: Path, truth: dict[str, Any], kit: types.SimpleNamespace
+) -> None:
+    kf = kit.true_trajectory(truth, "front", kit.keyframe_step)
+    _write_traj(result_dir, "front", kf.stamps + 0.004, kf.positions, kf.quaternions)
+    e = evaluate_result(truth_path, result_dir).sides["front"]
+    assert e is not None and e.n_associated == kf.stamps.size
+    _write_traj(result_dir, "front", kf.stamps + 0.010, kf.positions, kf.quaternions)
+    rep = evaluate_result(truth_path, result_dir)
+    e = rep.sides["front"]
+    assert e is not None and e.n_associated == 0 and e.drift_percent is None and e.ate_percent is None
+    assert "sides.front" in rep.skipped
+    assert json.dumps(rep.to_dict())
+
+
+def test_partial_folder_and_timing_fallback(truth_path: Path, result_dir: Path) -> None:
+    for name in ("side_merge.json", "trajectory_back.tum", "trees.json"):
+        (result_dir / name).unlink()
+    (result_dir / "timings.json").write_text(json.dumps({"stages": {"odometry": 2.0}}))
+    rep = evaluate_result(truth_path, result_dir)
+    assert isinstance(rep, EvaluationReport)
+    assert rep.merge is None and rep.sides["back"] is None and rep.sides["front"] is not None
+    # trees.csv still there: matching works, fruit positions (json only) do not
+    assert rep.matching is not None and rep.matching.matched == 3 and rep.double_count is None
+    assert set(rep.skipped) == {"merge", "sides.back", "double_count"}
+    assert rep.timings is not None and rep.timings.recording_duration_source == "ground truth"
+    assert rep.timings.realtime_factor == pytest.approx(2.0 / (30 / 15.0 * 2))
+    assert "n/a" in _render(rep.table())
+
+
+def test_bad_inputs_raise_typed_errors(truth_path: Path, result_dir: Path, tmp_path: Path) -> None:
+    with pytest.raises(ResultFormatError, match="result folder not found"):
+        evaluate_result(truth_path, tmp_path / "missing")
+    with pytest.raises(GroundTruthError, match="not found"):
+        evaluate_result(tmp_path / "missing.json", result_dir)
+    (result_dir / "trajectory_front.tum").write_text("0 0 0 0 0 0 0 1\nbroken line\n")
+    with pytest.raises(ResultFormatError, match=r"trajectory_front\.tum:2"):
+        evaluate_result(truth_path, result_dir)
+
+
+def test_truth_without_trees_does_not_crash(tmp_path: Path, truth: dict[str, Any], result_dir: Path) -> None:
+    truth["trees"], truth["n_trees"] = [], 0
+    path = tmp_path / "gt_empty.json"
+    path.write_text(json.dumps(truth))
+    rep = evaluate_result(path, result_dir)
+    assert rep.matching is not None and (rep.matching.matched, rep.matching.false) == (0, 3)
+    assert rep.double_count is not None and rep.double_count.false == 9
+    assert rep.merge is None and "merge" in rep.skipped
+    assert json.dumps(rep.to_dict()) and _render(rep.table())
