@@ -1,0 +1,145 @@
+"""The `orchard-map` command. Heavy imports live inside the commands so `--help` stays fast.
+
+Only this layer turns the package's typed errors into messages and exit codes.
+"""
+
+from __future__ import annotations
+
+import json
+import logging
+from pathlib import Path
+from typing import Any, Optional
+
+import typer
+from rich.console import Console
+
+app = typer.Typer(
+    add_completion=False,
+    no_args_is_help=True,
+    help="Semantic mapping of orchard rows from two-side reconstructions (Dong, Roy, Isler).",
+)
+# Tables of the demo and `inspect` are wide: keep them readable when output is piped (CI, logs).
+console = Console(width=None if Console().is_terminal else 140)
+err_console = Console(stderr=True)
+
+EXIT_USAGE = 2
+
+
+def _fail(err: Exception) -> typer.Exit:
+    err_console.print(f"[bold red]error:[/] {err}")
+    return typer.Exit(EXIT_USAGE)
+
+
+def _parse_sets(sets: list[str]) -> dict[str, Any]:
+    """`key.sub=value` pairs; values parsed as YAML (numbers, lists, booleans)."""
+    import yaml
+
+    out: dict[str, Any] = {}
+    for item in sets:
+        if "=" not in item:
+            raise typer.BadParameter(f"--set expects key=value, got '{item}'")
+        key, value = item.split("=", 1)
+        out[key.strip()] = yaml.safe_load(value)
+    return out
+
+
+@app.callback()
+def _main(verbose: bool = typer.Option(False, "--verbose", "-v", help="Log debug messages.")) -> None:
+    logging.basicConfig(level=logging.DEBUG if verbose else logging.WARNING,
+                        format="%(levelname)s %(name)s: %(message)s")
+
+
+@app.command()
+def simulate(
+    scenario: str = typer.Option("standard", help="Scenario name (config/scenarios) or YAML file."),
+    trees: Optional[int] = typer.Option(None, help="Number of trees in the row (overrides the scenario)."),
+    seed: int = typer.Option(0, help="Random seed: same seed, same bags."),
+    out: Path = typer.Option(..., help="Output folder: OUT/front, OUT/back, OUT/ground_truth.json, OUT/masks."),
+    force: bool = typer.Option(False, help="Replace a non-empty output folder."),
+    set_: list[str] = typer.Option([], "--set", help="Scenario override, e.g. --set camera.rate_hz=10."),
+) -> None:
+    """Simulate both sides of an orchard row: RGB-D bags plus ground truth."""
+    from rich.progress import BarColumn, MofNCompleteColumn, Progress, TextColumn, TimeRemainingColumn
+
+    from orchard_mapping.errors import OrchardMappingError
+    from orchard_mapping.sim.scenario import load_scenario
+    from orchard_mapping.sim.simulate import simulate as run_simulation
+
+    try:
+        overrides = _parse_sets(set_)
+        if trees is not None:
+            overrides["row.n_trees"] = trees
+        sc = load_scenario(scenario, overrides)
+        with Progress(TextColumn("{task.description}"), BarColumn(), MofNCompleteColumn(), TimeRemainingColumn(),
+                      console=err_console, transient=False) as bar:
+            tasks: dict[str, Any] = {}
+
+            def progress(label: str, i: int, n: int) -> None:
+                if label not in tasks:
+                    tasks[label] = bar.add_task(f"rendering {label}", total=n)
+                bar.update(tasks[label], completed=i)
+
+            result = run_simulation(sc, seed, out, force=force, progress=progress)
+    except OrchardMappingError as err:
+        raise _fail(err) from err
+    console.print(f"scenario [bold]{sc.name}[/], {sc.row.n_trees} trees, seed {seed}")
+    for label, path in result.bags.items():
+        console.print(f"  {label}: {path} ({result.frames[label]} frames)")
+    console.print(f"  ground truth: {result.truth_path}")
+
+
+@app.command()
+def inspect(
+    path: Path = typer.Argument(..., help="A simulation folder (with ground_truth.json), a rosbag2 folder or .mcap."),
+) -> None:
+    """Read bags back and print what they contain, and the ground truth per tree if present."""
+    from orchard_mapping.cli.inspect_cmd import inspect_path
+    from orchard_mapping.errors import OrchardMappingError
+
+    try:
+        inspect_path(path, console)
+    except OrchardMappingError as err:
+        raise _fail(err) from err
+
+
+@app.command()
+def evaluate(
+    truth: Path = typer.Option(..., help="ground_truth.json written by `orchard-map simulate`."),
+    result: Path = typer.Option(..., help="Result folder written by `orchard-map run` (docs/results.md)."),
+    as_json: bool = typer.Option(False, "--json", help="Print the metrics as JSON (for CI and benchmarks)."),
+    config: Optional[Path] = typer.Option(None, help="Configuration file (evaluate.match_radius_m)."),
+) -> None:
+    """Compare a result folder with the simulator's ground truth; print one table."""
+    from orchard_mapping.config import load_config
+    from orchard_mapping.errors import OrchardMappingError
+    from orchard_mapping.eval import evaluate_result
+
+    try:
+        cfg = load_config(config)
+        report = evaluate_result(truth, result, match_radius_m=cfg.evaluate.match_radius_m)
+    except OrchardMappingError as err:
+        raise _fail(err) from err
+    if as_json:
+        typer.echo(json.dumps(report.to_dict(), indent=1))
+    else:
+        console.print(report.table())
+        console.print(report.per_tree_table())
+
+
+@app.command("config")
+def show_config(
+    config: Optional[Path] = typer.Option(None, help="Configuration file overlaid on config/default.yaml."),
+) -> None:
+    """Print the effective configuration (YAML)."""
+    from orchard_mapping.config import dump_yaml, load_config
+    from orchard_mapping.errors import OrchardMappingError
+
+    try:
+        cfg = load_config(config)
+    except OrchardMappingError as err:
+        raise _fail(err) from err
+    typer.echo(dump_yaml(cfg), nl=False)
+
+
+if __name__ == "__main__":
+    app()

@@ -1,0 +1,172 @@
+"""Simulator scenarios: a nested pydantic model loaded from config/scenarios/*.yaml.
+
+Lengths in metres, angles in degrees, rates in Hz. A scenario file only states
+what differs from the defaults below; unknown keys are errors naming the key.
+"""
+
+from __future__ import annotations
+
+from pathlib import Path
+from typing import Any, Literal
+
+import yaml
+from pydantic import BaseModel, ConfigDict, Field, ValidationError, model_validator
+
+from orchard_mapping.config import validation_message
+from orchard_mapping.errors import ScenarioError
+from orchard_mapping.resources import scenario_dir
+
+Range = tuple[float, float]
+
+
+class _S(BaseModel):
+    model_config = ConfigDict(extra="forbid", frozen=True)
+
+
+class RowSpec(_S):
+    n_trees: int = Field(10, ge=1, le=200)
+    spacing_m: float = Field(0.95, gt=0.3)  # mean trunk-to-trunk distance along the row
+    spacing_jitter_m: float = Field(0.08, ge=0.0)
+    offset_jitter_m: float = Field(0.03, ge=0.0)  # trunk offset across the row
+    slope_deg: float = 2.0  # ground slope along the row
+    cross_slope_deg: float = 1.0  # ground slope across the row
+    undulation_m: float = Field(0.06, ge=0.0)  # amplitude of smooth local ground variation
+    undulation_wavelength_m: float = Field(2.5, gt=0.2)
+    roughness_m: float = Field(0.008, ge=0.0)  # small-scale ground roughness
+    margin_m: float = Field(1.2, ge=0.0)  # path beyond the first / last tree
+
+
+class TrunkSpec(_S):
+    diameter_mean_m: float = Field(0.069, gt=0.0)  # at diameter_height_m
+    diameter_sd_m: float = Field(0.0085, ge=0.0)
+    diameter_min_m: float = Field(0.04, gt=0.0)
+    diameter_max_m: float = Field(0.09, gt=0.0)
+    diameter_height_m: float = Field(0.30, gt=0.0)  # height above local ground where diameter is stated
+    taper_per_m: float = Field(0.012, ge=0.0)  # diameter lost per metre of trunk
+    lean_deg_max: float = Field(4.0, ge=0.0)
+    curve_m: float = Field(0.012, ge=0.0)  # sideways bow of the axis at mid-height
+    clear_height_m: Range = (0.55, 0.75)  # trunk free of branches up to this height
+
+
+class CanopySpec(_S):
+    height_m: Range = (1.9, 2.6)  # tree height above local ground
+    radius_along_row_m: Range = (0.5, 0.6)  # half-width along the row (neighbours touch at ~spacing/2)
+    radius_across_row_m: Range = (0.38, 0.5)
+    branches: tuple[int, int] = (12, 18)
+    leaves_per_m3: float = Field(9000.0, gt=0.0)  # leaf density in the canopy envelope
+    leaf_size_m: Range = (0.05, 0.08)
+
+
+class FruitSpec(_S):
+    per_tree: tuple[int, int] = (18, 40)
+    radius_m: Range = (0.035, 0.045)
+    red_fraction: float = Field(0.6, ge=0.0, le=1.0)
+
+
+class StructureSpec(_S):
+    post_every_n_trees: int = Field(5, ge=0)  # 0 = no intermediate posts (end posts always)
+    post_diameter_m: float = Field(0.10, gt=0.0)
+    post_height_m: float = Field(2.9, gt=0.0)
+    wire_heights_m: tuple[float, ...] = (0.9, 1.5, 2.1)
+    wire_diameter_m: float = Field(0.004, gt=0.0)
+    weeds_per_m2: float = Field(6.0, ge=0.0)
+    weed_height_m: Range = (0.05, 0.25)
+    hedge_distance_m: float = Field(3.4, gt=1.5)  # neighbouring rows seen in the background
+
+
+class CameraSpec(_S):
+    width: int = Field(640, ge=16)
+    height: int = Field(480, ge=16)
+    fx: float = Field(615.0, gt=0.0)
+    fy: float = Field(615.0, gt=0.0)
+    cx: float = 319.5
+    cy: float = 239.5
+    rate_hz: float = Field(15.0, gt=0.0, le=90.0)
+    depth_min_m: float = 0.2
+    depth_max_m: float = 6.0
+    depth_sigma_coeff: float = Field(0.004, ge=0.0)  # depth noise sd = coeff * z^2 (m), RealSense-like
+    dropout: float = Field(0.01, ge=0.0, le=1.0)  # random missing depth
+    edge_missing: float = Field(0.35, ge=0.0, le=1.0)  # missing depth at depth edges
+    flying_pixels: float = Field(0.3, ge=0.0, le=1.0)  # edge pixels mixed between fore- and background
+    color_noise_sd: float = Field(2.0, ge=0.0)  # 8-bit levels
+    exposure_jitter: float = Field(0.04, ge=0.0)  # relative gain change per frame
+
+
+class PathSpec(_S):
+    # two_sweep: level sweep at trunk height, back along the side with the camera raised and tilted down
+    # single_pass: one level sweep per side (trunks only); loop: one drive around the row, one bag
+    mode: Literal["two_sweep", "single_pass", "loop"] = "two_sweep"
+    distance_m: float = Field(1.25, gt=0.3)  # camera to trunk line
+    low_height_m: float = Field(0.75, gt=0.0)  # camera above ground, level sweep
+    high_height_m: float = Field(2.8, gt=0.0)  # camera above ground, raised sweep
+    high_tilt_deg: float = Field(25.0, ge=0.0, le=80.0)  # downward tilt of the raised sweep
+    speed_mps: float = Field(0.5, gt=0.0)
+    turn_s: float = Field(3.0, ge=0.5)  # time spent raising the camera at the row end
+    jitter_m: float = Field(0.012, ge=0.0)  # hand-held position jitter amplitude
+    jitter_deg: float = Field(0.8, ge=0.0)  # hand-held rotation jitter amplitude
+    roll_deg: float = 0.0  # mean camera roll (tilted scenario)
+    # fraction of the row [start, end] each side covers (partial_overlap scenario)
+    front_span: Range = (0.0, 1.0)
+    back_span: Range = (0.0, 1.0)
+
+
+class WindSpec(_S):
+    enabled: bool = False
+    amplitude_m: float = Field(0.03, ge=0.0)  # leaf displacement at the canopy edge
+    frequency_hz: float = Field(1.2, gt=0.0)
+
+
+class Scenario(_S):
+    name: str = "custom"
+    description: str = ""
+    row: RowSpec = RowSpec()
+    trunk: TrunkSpec = TrunkSpec()
+    canopy: CanopySpec = CanopySpec()
+    fruit: FruitSpec = FruitSpec()
+    structure: StructureSpec = StructureSpec()
+    camera: CameraSpec = CameraSpec()
+    path: PathSpec = PathSpec()
+    wind: WindSpec = WindSpec()
+    masks_every: int = Field(1, ge=0)  # write an instance mask every n-th frame (0 = none)
+    canopy_alpha_m: float = Field(0.8, gt=0.0)  # alpha of the canopy-volume definition
+
+    @model_validator(mode="after")
+    def _check(self) -> "Scenario":
+        t = self.trunk
+        if not t.diameter_min_m <= t.diameter_mean_m <= t.diameter_max_m:
+            raise ValueError("trunk.diameter_mean_m must lie in [diameter_min_m, diameter_max_m]")
+        for key in ("front_span", "back_span"):
+            a, b = getattr(self.path, key)
+            if not 0.0 <= a < b <= 1.0:
+                raise ValueError(f"path.{key} must satisfy 0 <= start < end <= 1")
+        return self
+
+
+def list_scenarios() -> list[str]:
+    return sorted(p.stem for p in scenario_dir().glob("*.yaml"))
+
+
+def load_scenario(name_or_path: str | Path, overrides: dict[str, Any] | None = None) -> Scenario:
+    """A scenario by name (config/scenarios/NAME.yaml) or by file path, plus dotted-free nested overrides."""
+    path = Path(name_or_path)
+    if not path.suffix:
+        path = scenario_dir() / f"{name_or_path}.yaml"
+        if not path.is_file():
+            raise ScenarioError(f"unknown scenario '{name_or_path}'; known: {', '.join(list_scenarios())}")
+    try:
+        data = yaml.safe_load(path.read_text()) or {}
+    except (OSError, yaml.YAMLError) as err:
+        raise ScenarioError(f"cannot read scenario file {path}: {err}") from err
+    if not isinstance(data, dict):
+        raise ScenarioError(f"scenario file {path} must hold a mapping")
+    data.setdefault("name", path.stem)
+    for key, value in (overrides or {}).items():
+        node = data
+        *parents, leaf = key.split(".")
+        for p in parents:
+            node = node.setdefault(p, {})
+        node[leaf] = value
+    try:
+        return Scenario.model_validate(data)
+    except ValidationError as err:
+        raise ScenarioError(validation_message(err, str(path))) from err

@@ -1,0 +1,136 @@
+"""Camera paths along the row, as the paper's field protocol records them.
+
+two_sweep (default, one recording per side): a level sweep at trunk height along
+the side, then, after raising the camera on a stick at the row end, back along
+the same side with the camera high and tilted down over the canopy. The return
+sweep revisits the same trees, which gives loop closure something to find.
+single_pass: the level sweep alone. loop: one drive around the row.
+Poses are T_world_cam of the colour optical frame (x right, y down, z forward).
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+
+from orchard_mapping.sim.scenario import Scenario
+from orchard_mapping.sim.scene import Terrain
+
+
+@dataclass(frozen=True)
+class CameraPath:
+    stamps: np.ndarray  # (N,) s, message time
+    poses: np.ndarray  # (N, 4, 4) T_world_cam
+    sides: np.ndarray  # (N,) str "front" / "back"
+    path_length_m: float
+
+
+def look_rotation(forward: np.ndarray, roll: np.ndarray) -> np.ndarray:
+    """Optical-frame rotations (N, 3, 3) looking along `forward` (N, 3) with roll (N,) rad about it."""
+    f = forward / np.linalg.norm(forward, axis=1, keepdims=True)
+    up = np.array([0.0, 0.0, 1.0])
+    x = np.cross(f, up)
+    x /= np.linalg.norm(x, axis=1, keepdims=True)
+    y = np.cross(f, x)
+    c, s = np.cos(roll)[:, None], np.sin(roll)[:, None]
+    xr = c * x + s * y
+    yr = -s * x + c * y
+    return np.stack([xr, yr, f], axis=2)  # columns are the camera axes in world
+
+
+def _smooth_noise(rng: np.random.Generator, t: np.ndarray, amplitude: float, dims: int) -> np.ndarray:
+    """Band-limited hand-held motion (N, dims): a few sinusoids between 0.2 and 2.5 Hz."""
+    k = 5
+    f = rng.uniform(0.2, 2.5, (dims, k))
+    ph = rng.uniform(0, 2 * np.pi, (dims, k))
+    a = rng.uniform(0.5, 1.0, (dims, k))
+    a *= amplitude / np.sqrt(np.sum(a ** 2, axis=1, keepdims=True) / 2)
+    return np.sum(a[None] * np.sin(2 * np.pi * f[None] * t[:, None, None] + ph[None]), axis=2)
+
+
+def _ease(u: np.ndarray) -> np.ndarray:
+    return u * u * (3 - 2 * u)
+
+
+def side_path(sc: Scenario, side: str, row_x: tuple[float, float], terrain: Terrain,
+              rng: np.random.Generator, t0: float) -> CameraPath:
+    """The camera path of one side ("front": y < 0 looking +y; "back": y > 0 looking -y)."""
+    p = sc.path
+    rate = sc.camera.rate_hz
+    x_lo = row_x[0] - sc.row.margin_m
+    x_hi = row_x[1] + sc.row.margin_m
+    span = p.front_span if side == "front" else p.back_span
+    xa = x_lo + span[0] * (x_hi - x_lo)
+    xb = x_lo + span[1] * (x_hi - x_lo)
+    sgn = -1.0 if side == "front" else 1.0  # camera on y = sgn * distance
+    yaw = np.pi / 2 if side == "front" else -np.pi / 2
+    # The front side is walked towards +x, the back side towards -x (walking around the row).
+    start, end = (xa, xb) if side == "front" else (xb, xa)
+
+    if p.mode == "loop":
+        return _loop_path(sc, row_x, terrain, rng, t0, xa, xb)
+
+    t_sweep = abs(end - start) / p.speed_mps
+    n_sweep = max(2, int(round(t_sweep * rate)))
+    u = _ease(np.linspace(0, 1, n_sweep))
+    xs = [start + u * (end - start)]
+    hs = [np.full(n_sweep, p.low_height_m)]
+    pitch = [np.zeros(n_sweep)]
+    if p.mode == "two_sweep":
+        n_turn = max(2, int(round(p.turn_s * rate)))
+        ut = _ease(np.linspace(0, 1, n_turn + 2)[1:-1])
+        xs.append(np.full(n_turn, end))
+        hs.append(p.low_height_m + ut * (p.high_height_m - p.low_height_m))
+        pitch.append(-ut * np.radians(p.high_tilt_deg))
+        xs.append(end + u * (start - end))
+        hs.append(np.full(n_sweep, p.high_height_m))
+        pitch.append(np.full(n_sweep, -np.radians(p.high_tilt_deg)))
+    x = np.concatenate(xs)
+    h = np.concatenate(hs)
+    pit = np.concatenate(pitch)
+    n = len(x)
+    t = np.arange(n) / rate
+    y = np.full(n, sgn * p.distance_m)
+    jit = _smooth_noise(rng, t, p.jitter_m, 3)
+    ang = np.radians(_smooth_noise(rng, t, p.jitter_deg, 3))
+    pos = np.stack([x, y, terrain.height(x, y) + h], 1) + jit
+    yaws = yaw + ang[:, 0]
+    pits = pit + ang[:, 1]
+    fwd = np.stack([np.cos(pits) * np.cos(yaws), np.cos(pits) * np.sin(yaws), np.sin(pits)], 1)
+    R = look_rotation(fwd, np.radians(p.roll_deg) + ang[:, 2])
+    T = np.tile(np.eye(4), (n, 1, 1))
+    T[:, :3, :3] = R
+    T[:, :3, 3] = pos
+    length = float(np.sum(np.linalg.norm(np.diff(pos, axis=0), axis=1)))
+    return CameraPath(t0 + t, T, np.full(n, side), length)
+
+
+def _loop_path(sc: Scenario, row_x: tuple[float, float], terrain: Terrain, rng: np.random.Generator,
+               t0: float, xa: float, xb: float) -> CameraPath:
+    """Front side towards +x, half circle round the row end, back side towards -x; level camera."""
+    p = sc.path
+    rate = sc.camera.rate_hz
+    d = p.distance_m
+    ds = p.speed_mps / rate
+    s1 = np.arange(0, xb - xa, ds)
+    arc = np.arange(0, np.pi * d, ds) / d  # angle swept round the end
+    s3 = np.arange(0, xb - xa, ds)
+    x = np.concatenate([xa + s1, xb + d * np.sin(arc), xb - s3])
+    y = np.concatenate([np.full(len(s1), -d), -d * np.cos(arc), np.full(len(s3), d)])
+    # Look at the row: +y on the front side, towards the row end during the turn, -y on the back side.
+    yaw = np.concatenate([np.full(len(s1), np.pi / 2), np.pi / 2 + arc, np.full(len(s3), -np.pi / 2)])
+    sides = np.array(["front"] * (len(s1) + len(arc) // 2) + ["back"] * (len(arc) - len(arc) // 2 + len(s3)))
+    n = len(x)
+    t = np.arange(n) / rate
+    jit = _smooth_noise(rng, t, p.jitter_m, 3)
+    ang = np.radians(_smooth_noise(rng, t, p.jitter_deg, 3))
+    pos = np.stack([x, y, terrain.height(x, y) + p.low_height_m], 1) + jit
+    yaws = yaw + ang[:, 0]
+    pits = ang[:, 1]
+    fwd = np.stack([np.cos(pits) * np.cos(yaws), np.cos(pits) * np.sin(yaws), np.sin(pits)], 1)
+    T = np.tile(np.eye(4), (n, 1, 1))
+    T[:, :3, :3] = look_rotation(fwd, np.radians(p.roll_deg) + ang[:, 2])
+    T[:, :3, 3] = pos
+    length = float(np.sum(np.linalg.norm(np.diff(pos, axis=0), axis=1)))
+    return CameraPath(t0 + t, T, sides, length)

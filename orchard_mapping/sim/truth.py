@@ -1,0 +1,130 @@
+"""Ground truth from the scene description: trait definitions and per-side visibility.
+
+Nothing here calls an estimator of `core/` (a shared bug would hide itself):
+the canopy volume below is the simulator's own alpha-complex implementation.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+from scipy.spatial import Delaunay
+
+from orchard_mapping.core.types import CameraIntrinsics
+from orchard_mapping.sim.render import RenderOutput
+from orchard_mapping.sim.scene import Cls, Scene, TreeGeom
+
+CANOPY_VOLUME_DEFINITION = (
+    "Volume (m^3) of the alpha complex with alpha = {alpha} m of points sampled on the tree's own canopy "
+    "geometry (leaf vertices, branch and leader centre lines above the clear trunk, fruit surface vertices): "
+    "the union of the Delaunay tetrahedra whose circumradius is below alpha (Edelsbrunner & Muecke 1994), "
+    "the paper's alpha-shape canopy volume. Neighbouring trees' geometry is not included."
+)
+HEIGHT_DEFINITION = (
+    "Distance (m) from the tree's local ground plane (least-squares plane of the terrain within 0.5 m of the "
+    "trunk) to the tree's highest point, along the plane normal (the paper's bounding box from local ground to top)."
+)
+DIAMETER_DEFINITION = (
+    "Trunk diameter (m) perpendicular to the trunk axis at diameter_height_m above the local ground plane."
+)
+
+# A fruit counts as visible from a side when, in at least one frame, at least this share of its projected
+# disc and this many pixels are unoccluded.
+FRUIT_MIN_VISIBLE_FRACTION = 0.25
+FRUIT_MIN_PIXELS = 20
+TRUNK_MIN_PIXELS = 50  # trunk pixels within +-5 cm of the diameter height in one frame
+TOP_BAND_M = 0.10  # "top seen": any pixel of the tree within this distance of its top
+
+
+def alpha_complex_volume(points: np.ndarray, alpha: float) -> float:
+    """Sum of the volumes of Delaunay tetrahedra with circumradius < alpha. points (N, 3)."""
+    pts = np.unique(np.round(points, 6), axis=0)
+    if len(pts) < 4:
+        return 0.0
+    tet = Delaunay(pts).simplices
+    a = pts[tet[:, 0]]
+    m = np.stack([pts[tet[:, 1]] - a, pts[tet[:, 2]] - a, pts[tet[:, 3]] - a], axis=1)  # (T, 3, 3)
+    det = np.linalg.det(m)
+    vol = np.abs(det) / 6.0
+    ok = vol > 1e-12
+    rhs = 0.5 * np.sum(m[ok] ** 2, axis=2)  # (T, 3)
+    centre = np.linalg.solve(m[ok], rhs[..., None])[..., 0]
+    radius = np.full(len(tet), np.inf)
+    radius[ok] = np.linalg.norm(centre, axis=1)
+    return float(np.sum(vol[radius < alpha]))
+
+
+def trunk_axis_at_height(tree: TreeGeom, h: float) -> np.ndarray:
+    """Axis point (3,) at height h above the local ground plane."""
+    hs = (tree.axis_points - tree.ground_point) @ tree.ground_normal
+    return np.array([np.interp(h, hs, tree.axis_points[:, k]) for k in range(3)])
+
+
+def diameter_at_height(tree: TreeGeom, h: float) -> float:
+    hs = (tree.axis_points - tree.ground_point) @ tree.ground_normal
+    return float(np.interp(h, hs, tree.axis_diam))
+
+
+class VisibilityAccumulator:
+    """What one side's frames saw of each tree, fruit and leaf (from the renderer's instance labels)."""
+
+    def __init__(self, scene: Scene, intr: CameraIntrinsics, diameter_height: float) -> None:
+        self.scene = scene
+        self.K = intr
+        n_f = len(scene.fruit)
+        n_t = len(scene.trees)
+        self.fruit_tree = np.array([f.tree for f in scene.fruit], np.int32)
+        self.fruit_pos = np.array([f.position for f in scene.fruit]).reshape(n_f, 3)
+        self.fruit_r = np.array([f.radius for f in scene.fruit])
+        self.fruit_best = np.zeros(n_f)  # best visible fraction of the projected disc
+        self.fruit_px = np.zeros(n_f, np.int64)  # pixels in that frame
+        self.fruit_seen = np.zeros(n_f, bool)
+        self.trunk_px = np.zeros(n_t, np.int64)
+        self.top_seen = np.zeros(n_t, bool)
+        self.tri_seen = np.zeros(len(scene.triangles), bool)
+        self.gp = np.array([t.ground_point for t in scene.trees])
+        self.gn = np.array([t.ground_normal for t in scene.trees])
+        self.height = np.array([tree_height(t) for t in scene.trees])
+        self.dh = diameter_height
+
+    def add(self, out: RenderOutput, T_world_cam: np.ndarray) -> None:
+        cls = out.cls.ravel()
+        inst = out.inst.ravel()
+        self.tri_seen[out.tri.ravel()[out.tri.ravel() >= 0]] = True
+        # Fruit: visible pixels over the projected disc area.
+        fr = cls == Cls.FRUIT
+        if len(self.fruit_pos):
+            counts = np.bincount(inst[fr], minlength=len(self.fruit_pos))
+            Tcw = np.linalg.inv(T_world_cam)
+            pc = self.fruit_pos @ Tcw[:3, :3].T + Tcw[:3, 3]
+            z = np.maximum(pc[:, 2], 1e-3)
+            area = np.pi * (self.K.fx * self.fruit_r / z) ** 2
+            frac = np.where(pc[:, 2] > 0.1, counts / area, 0.0)
+            better = frac > self.fruit_best
+            self.fruit_best = np.where(better, frac, self.fruit_best)
+            self.fruit_px = np.where(better, counts, self.fruit_px)
+            self.fruit_seen |= (frac >= FRUIT_MIN_VISIBLE_FRACTION) & (counts >= FRUIT_MIN_PIXELS)
+        # Per-pixel tree id and height above that tree's local ground.
+        tree_cls = (cls == Cls.TRUNK) | (cls == Cls.BRANCH) | (cls == Cls.LEAF) | fr
+        tree = np.where(fr, self.fruit_tree[np.clip(inst, 0, None)] if len(self.fruit_tree) else -1, inst)
+        sel = tree_cls & (tree >= 0)
+        if not sel.any():
+            return
+        pts = out.points.reshape(-1, 3)[sel]
+        tid = tree[sel]
+        h = np.sum((pts - self.gp[tid]) * self.gn[tid], axis=1)
+        trunk_band = (cls[sel] == Cls.TRUNK) & (np.abs(h - self.dh) < 0.05)
+        self.trunk_px = np.maximum(self.trunk_px, np.bincount(tid[trunk_band], minlength=len(self.trunk_px)))
+        top = h >= self.height[tid] - TOP_BAND_M
+        self.top_seen[np.unique(tid[top])] = True
+
+    def summary(self, tree: TreeGeom) -> dict:
+        leaves = tree.leaf_tri
+        return {
+            "trunk_at_diameter_height": bool(self.trunk_px[tree.id] >= TRUNK_MIN_PIXELS),
+            "top": bool(self.top_seen[tree.id]),
+            "canopy_fraction": round(float(self.tri_seen[leaves].mean()) if len(leaves) else 0.0, 4),
+        }
+
+
+def tree_height(tree: TreeGeom) -> float:
+    return float((tree.top_z_point - tree.ground_point) @ tree.ground_normal)
