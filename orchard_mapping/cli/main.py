@@ -20,13 +20,15 @@ app = typer.Typer(
 )
 # Tables of the demo and `inspect` are wide: keep them readable when output is piped (CI, logs).
 console = Console(width=None if Console().is_terminal else 140)
-err_console = Console(stderr=True)
+err_console = Console(stderr=True, soft_wrap=True)  # one line per error: greppable in CI logs
 
 EXIT_USAGE = 2
 
 
 def _fail(err: Exception) -> typer.Exit:
-    err_console.print(f"[bold red]error:[/] {err}")
+    from rich.text import Text
+
+    err_console.print(Text.assemble(("error: ", "bold red"), str(err)))
     return typer.Exit(EXIT_USAGE)
 
 
