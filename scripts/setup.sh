@@ -55,7 +55,9 @@ apt_install() {
 }
 
 missing_pkgs=()
-if ! ldconfig -p 2>/dev/null | grep -q 'libusb-1\.0\.so'; then
+LDCONFIG="$(command -v ldconfig || echo /sbin/ldconfig)"   # /sbin is not on every PATH
+ld_cache="$("$LDCONFIG" -p 2>/dev/null || true)"   # no `| grep -q`: SIGPIPE under pipefail
+if ! grep -q 'libusb-1\.0\.so' <<<"$ld_cache"; then
   missing_pkgs+=(libusb-1.0-0)          # open3d imports fail without it
 fi
 if ! command -v cc >/dev/null 2>&1 || ! command -v c++ >/dev/null 2>&1; then

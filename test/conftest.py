@@ -11,10 +11,10 @@ import random
 
 os.environ["ROS_AUTOMATIC_DISCOVERY_RANGE"] = "LOCALHOST"
 
-# One random ROS domain per test session, so that concurrent test runs on the
-# same machine (two developers, CI) never see each other's topics. 0..101 are
-# the domain ids that are safe on Linux for any number of participants.
-os.environ.setdefault("ROS_DOMAIN_ID", str(random.SystemRandom().randint(1, 101)))
+# One random ROS domain per test session (forced, like the discovery range), so
+# that concurrent test runs on one machine (two developers, CI) never see each
+# other's topics. 1..101 are domain ids safe on Linux for any participant count.
+os.environ["ROS_DOMAIN_ID"] = str(random.SystemRandom().randint(1, 101))
 
 import pytest  # noqa: E402
 
