@@ -10,6 +10,7 @@ from __future__ import annotations
 
 from dataclasses import dataclass
 
+import cv2
 import numpy as np
 import open3d as o3d
 
@@ -20,42 +21,36 @@ _SUN = np.array([0.35, -0.45, 0.82])
 _SUN /= np.linalg.norm(_SUN)
 
 
-class ValueNoise3D:
-    """Smooth 3D value noise from a periodic random lattice (vectorised, deterministic)."""
+class SurfaceTexture:
+    """Periodic multi-scale noise image, mapped onto surfaces by planar projection.
 
-    def __init__(self, seed: int, size: int = 32) -> None:
-        self.size = size
-        self.flat = np.random.default_rng(seed).random(size ** 3).astype(np.float32)
+    Each hit point is projected along the dominant axis of its surface normal
+    (the cheap half of triplanar mapping) and looked up with bilinear
+    interpolation (cv2.remap, wrapping). Texture is fixed to the surface, so
+    features are trackable; 2048 px at the finest scale below repeat only
+    every ~6 m, and the soil/turf layer uses an incommensurate scale.
+    """
 
-    def __call__(self, p: np.ndarray) -> np.ndarray:  # p (N, 3) float32 lattice units -> (N,) in [0, 1]
-        f = np.floor(p)
-        r = p - f
-        r = r * r * (3 - 2 * r)
-        s = self.size
-        i = f.astype(np.int32) & (s - 1)  # size is a power of two: & wraps negatives too
-        j = (i + 1) & (s - 1)
-        ix = (i[:, 0] * s * s, j[:, 0] * s * s)
-        iy = (i[:, 1] * s, j[:, 1] * s)
-        iz = (i[:, 2], j[:, 2])
-        wx = (1 - r[:, 0], r[:, 0])
-        wy = (1 - r[:, 1], r[:, 1])
-        wz = (1 - r[:, 2], r[:, 2])
-        out = np.zeros(len(p), np.float32)
-        for a in (0, 1):
-            for b in (0, 1):
-                base = ix[a] + iy[b]
-                wab = wx[a] * wy[b]
-                out += wab * (wz[0] * self.flat[base + iz[0]] + wz[1] * self.flat[base + iz[1]])
-        return out
+    def __init__(self, seed: int, size: int = 2048) -> None:
+        rng = np.random.default_rng(seed)
+        spec = np.fft.rfft2(rng.standard_normal((size, size)).astype(np.float32))
+        fy = np.fft.fftfreq(size)[:, None]
+        fx = np.fft.rfftfreq(size)[None, :]
+        f2 = fx ** 2 + fy ** 2
+        img = np.zeros((size, size), np.float64)
+        for sigma, weight in ((1.2, 0.35), (3.5, 0.35), (10.0, 0.3)):  # px: fine grain, blobs, patches
+            layer = np.fft.irfft2(spec * np.exp(-2 * (np.pi * sigma) ** 2 * f2), s=(size, size))
+            img += weight * layer / layer.std()
+        img = (img - img.mean()) / (4 * img.std()) + 0.5
+        self.image = np.clip(img, 0, 1).astype(np.float32)
 
-    def fbm(self, p: np.ndarray, octaves: int = 2) -> np.ndarray:
-        out = np.zeros(len(p), np.float32)
-        amp, total = 1.0, 0.0
-        for o in range(octaves):
-            out += amp * self(p * np.float32(2.0 ** o) + np.float32(17.0 * o))
-            total += amp
-            amp *= 0.5
-        return out / np.float32(total)
+    def lookup(self, u: np.ndarray, v: np.ndarray) -> np.ndarray:
+        """Texture at texel coordinates u, v (same shape, float32)."""
+        shape = u.shape
+        u2 = np.ascontiguousarray(u.reshape(-1, 640) if u.size % 640 == 0 else u.reshape(1, -1))
+        v2 = np.ascontiguousarray(v.reshape(u2.shape))
+        out = cv2.remap(self.image, u2, v2, cv2.INTER_LINEAR, borderMode=cv2.BORDER_WRAP)
+        return out.reshape(shape)
 
 
 @dataclass(frozen=True)
@@ -72,7 +67,7 @@ class Renderer:
     def __init__(self, scene: Scene, intrinsics: CameraIntrinsics, seed: int) -> None:
         self.scene = scene
         self.K = intrinsics
-        self.noise = ValueNoise3D(seed + 101)
+        self.texture = SurfaceTexture(seed + 101)
         self._static: o3d.t.geometry.RaycastingScene | None = None
         self._vertices32 = scene.vertices.astype(np.float32)
         self._tri_ext = np.vstack([scene.triangles, [[0, 0, 0]]])
@@ -134,7 +129,8 @@ class Renderer:
         n = hit["primitive_normals"].numpy()
         n = n * np.where(np.einsum("ij,ij->i", n, dirs) > 0, -1.0, 1.0).astype(np.float32)[:, None]
         color = self._shade(p_rest, n, cls, self._albedo_ext[prim])
-        color = np.where(ok[:, None], color, self._sky(dirs))
+        miss = ~ok
+        color[miss] = self._sky(dirs[miss])
         p_rest[~ok] = 0.0
         H, W = K.height, K.width
         return RenderOutput(
@@ -145,38 +141,52 @@ class Renderer:
         )
 
     def _sky(self, d: np.ndarray) -> np.ndarray:
-        elev = d[:, 2] / np.linalg.norm(d, axis=1)
+        elev = d[:, 2] * (1.0 / np.sqrt(np.einsum("ij,ij->i", d, d)))
         base = np.array([0.62, 0.74, 0.9], np.float32)
         top = np.array([0.42, 0.58, 0.86], np.float32)
         a = np.clip(elev, 0, 1)[:, None]
         return base * (1 - a) + top * a
 
-    # Texture scale per class (lattice cells per metre, x y z): bark furrows run along the axis.
+    # Texels per metre per class along (the two in-plane axes, the vertical axis): bark furrows
+    # run along the (near-vertical) trunk axis, so vertical texels are stretched.
     _TEX_SCALE = {
-        Cls.GROUND: (25.0, 25.0, 25.0), Cls.TRUNK: (60.0, 60.0, 9.0), Cls.BRANCH: (60.0, 60.0, 9.0),
-        Cls.POST: (50.0, 50.0, 6.0), Cls.LEAF: (40.0, 40.0, 40.0), Cls.HEDGE: (30.0, 30.0, 30.0),
-        Cls.WEED: (40.0, 40.0, 40.0), Cls.FRUIT: (70.0, 70.0, 70.0), Cls.WIRE: (10.0, 10.0, 10.0),
+        Cls.GROUND: (330.0, 330.0), Cls.TRUNK: (700.0, 120.0), Cls.BRANCH: (700.0, 120.0),
+        Cls.POST: (600.0, 80.0), Cls.LEAF: (500.0, 500.0), Cls.HEDGE: (250.0, 250.0),
+        Cls.WEED: (500.0, 500.0), Cls.FRUIT: (900.0, 900.0), Cls.WIRE: (100.0, 100.0),
     }
-    _TEX_GAIN = {Cls.GROUND: (0.5, 1.0), Cls.TRUNK: (0.45, 1.1), Cls.BRANCH: (0.45, 1.1), Cls.POST: (0.5, 1.0),
-                 Cls.LEAF: (0.65, 0.7), Cls.HEDGE: (0.5, 1.0), Cls.WEED: (0.65, 0.7), Cls.FRUIT: (0.8, 0.4),
+    _TEX_GAIN = {Cls.GROUND: (0.45, 1.1), Cls.TRUNK: (0.4, 1.2), Cls.BRANCH: (0.4, 1.2), Cls.POST: (0.45, 1.1),
+                 Cls.LEAF: (0.6, 0.8), Cls.HEDGE: (0.45, 1.1), Cls.WEED: (0.6, 0.8), Cls.FRUIT: (0.75, 0.5),
                  Cls.WIRE: (0.9, 0.2)}
 
-    def _shade(self, p: np.ndarray, n: np.ndarray, cls: np.ndarray, albedo: np.ndarray) -> np.ndarray:
-        lut_scale = np.ones((len(Cls), 3), np.float32)
-        lut_gain = np.ones((len(Cls), 2), np.float32)
+    def _luts(self) -> tuple[np.ndarray, np.ndarray]:
+        scale = np.full((len(Cls), 2), 300.0, np.float32)
+        gain = np.ones((len(Cls), 2), np.float32)
         for c, sc in self._TEX_SCALE.items():
-            lut_scale[c] = sc
-            lut_gain[c] = self._TEX_GAIN[c]
-        g = lut_gain[cls]
-        tex = g[:, 0] + g[:, 1] * self.noise.fbm(p * lut_scale[cls], 2)
+            scale[c] = sc
+            gain[c] = self._TEX_GAIN[c]
+        return scale, gain
+
+    def _shade(self, p: np.ndarray, n: np.ndarray, cls: np.ndarray, albedo: np.ndarray) -> np.ndarray:
+        scale, gain = self._luts()
+        s = scale[cls]
+        g = gain[cls]
+        # Planar projection along the dominant normal axis: z-facing surfaces use (x, y), others (in-plane, z).
+        an = np.abs(n)
+        z_dom = an[:, 2] >= np.maximum(an[:, 0], an[:, 1])
+        x_dom = an[:, 0] > an[:, 1]
+        horiz = np.where(x_dom, p[:, 1], p[:, 0])
+        u = np.where(z_dom, p[:, 0], horiz) * s[:, 0]
+        v = np.where(z_dom, p[:, 1] * s[:, 0], p[:, 2] * s[:, 1])
+        tex = g[:, 0] + g[:, 1] * self.texture.lookup(u, v)
         alb = albedo
         ground = cls == Cls.GROUND
         if ground.any():
-            # Soil and turf patches at the metre scale.
-            mix = np.clip((self.noise(p[ground] * np.float32(1.5)) - 0.45) * 4, 0, 1)[:, None]
-            alb = albedo.copy()
-            alb[ground] = (np.array([0.44, 0.35, 0.25], np.float32) * (1 - mix)
-                           + np.array([0.30, 0.44, 0.17], np.float32) * mix)
+            # Soil and turf patches at the metre scale (an incommensurate scale of the same image).
+            k = np.float32(37.0)
+            mix = np.clip((self.texture.lookup(p[:, 0] * k + 511.0, p[:, 1] * k + 97.0) - 0.5) * 5 + 0.5, 0, 1)
+            mix = mix[:, None]
+            turf = (np.array([0.44, 0.35, 0.25], np.float32) * (1 - mix) + np.array([0.30, 0.44, 0.17], np.float32) * mix)
+            alb = np.where(ground[:, None], turf, albedo)
         ndl = n @ _SUN.astype(np.float32)
         foliage = (cls == Cls.LEAF) | (cls == Cls.HEDGE) | (cls == Cls.WEED)
         # Foliage transmits light: back-lit leaves are not black.
