@@ -38,7 +38,7 @@ test: setup
 	exit $$rc
 
 demo: setup
-	$(VENV)/bin/orchard-map simulate --scenario standard --trees 4 --seed 0 --out demo_out/sim --force
+	$(VENV)/bin/orchard-map simulate --scenario standard --trees 4 --seed 0 --set camera.rate_hz=6 --out demo_out/sim --force
 	$(VENV)/bin/orchard-map inspect demo_out/sim
 
 bench: setup
