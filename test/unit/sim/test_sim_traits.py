@@ -1,0 +1,144 @@
+"""Trait definitions of the ground truth, recomputed from the scene description (build_scene)."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+from orchard_mapping.sim.scenario import load_scenario
+from orchard_mapping.sim.scene import Cls, build_scene, local_ground_plane
+from orchard_mapping.sim.truth import (
+    alpha_complex_volume,
+    diameter_at_height,
+    tree_height,
+)
+
+N_BIG = 200
+
+
+@pytest.fixture(scope="module")
+def big_row():
+    """A 200-tree row (scene only, no rendering). Fruit and weeds are cut to make it cheap to build;
+    trunks and canopies (which define diameters and heights) keep their standard settings."""
+    sc = load_scenario("standard", {"row.n_trees": N_BIG, "fruit.per_tree": [1, 2], "structure.weeds_per_m2": 0.0})
+    return build_scene(sc, 11)
+
+
+def _tree_vertices(scene, tree) -> np.ndarray:
+    """All mesh vertices of one tree: trunk, branches, leaves and its fruit. (M, 3)"""
+    own = np.isin(scene.tri_cls, [Cls.TRUNK, Cls.BRANCH, Cls.LEAF]) & (scene.tri_inst == tree.id)
+    own |= (scene.tri_cls == Cls.FRUIT) & np.isin(scene.tri_inst, tree.fruit_index)
+    return scene.vertices[np.unique(scene.triangles[own])]
+
+
+def test_height_is_top_of_geometry_above_local_ground(standard_sim):
+    """height_m = highest vertex of the tree's mesh above its local ground plane (0.5 m least squares)."""
+    scene = standard_sim.scene
+    for tree, t in zip(scene.trees, standard_sim.truth["trees"], strict=True):
+        gp, gn = local_ground_plane(scene.terrain, float(tree.base[0]), float(tree.base[1]), radius=0.5)
+        np.testing.assert_allclose(t["local_ground"]["point"], gp, atol=2e-5)
+        np.testing.assert_allclose(t["local_ground"]["normal"], gn, atol=2e-6)
+        top = float(np.max((_tree_vertices(scene, tree) - gp) @ gn))
+        assert t["height_m"] == pytest.approx(top, abs=1e-4)  # JSON rounds to 0.1 mm
+        # The truth's position is the trunk axis where it meets the local ground plane, near the scene's base.
+        pos = np.asarray(t["position"])
+        assert (pos - gp) @ gn == pytest.approx(0.0, abs=1e-4)
+        assert np.linalg.norm(pos - tree.base) < 0.05
+
+
+def test_diameter_is_axis_interpolation_and_mesh(standard_sim):
+    """diameter_m = TreeGeom.axis_diam interpolated at diameter height, and the trunk mesh has that diameter."""
+    scene = standard_sim.scene
+    dh = standard_sim.truth["diameter_height_m"]
+    for tree, t in zip(scene.trees, standard_sim.truth["trees"], strict=True):
+        h_axis = (tree.axis_points - tree.ground_point) @ tree.ground_normal
+        s_dh = np.interp(dh, h_axis, tree.axis_s)  # arc length at diameter height
+        d = float(np.interp(s_dh, tree.axis_s, tree.axis_diam))
+        assert t["trunk"]["diameter_m"] == pytest.approx(d, abs=2e-5)
+        # Mesh: trunk vertices within 3 cm of diameter height lie at d/2 from the axis (taper 1.2 cm/m: < 0.1 mm).
+        a0 = np.array([np.interp(s_dh, tree.axis_s, tree.axis_points[:, k]) for k in range(3)])
+        k = int(np.searchsorted(tree.axis_s, s_dh))
+        w = tree.axis_points[k + 1] - tree.axis_points[k - 1]
+        w /= np.linalg.norm(w)
+        v = scene.vertices[np.unique(scene.triangles[tree.trunk_tri[0]:tree.trunk_tri[1]])] - a0
+        near = np.abs(v @ w) < 0.03
+        assert near.sum() >= 40
+        radial = np.linalg.norm(v[near] - np.outer(v[near] @ w, w), axis=1)
+        assert 2 * np.median(radial) == pytest.approx(d, abs=5e-4)
+
+
+def test_trunk_diameter_distribution(big_row):
+    """Over 200 trees: mean ~0.069 m, sd ~0.0085 m, all in [0.04, 0.09] m.
+
+    Sampling error with n = 200: se(mean) = 0.0085 / sqrt(200) = 0.0006 m, se(sd) ~ 0.0085 / sqrt(400)
+    = 0.0004 m; clipping at 0.04 / 0.09 (-3.4 / +2.5 sd) moves both by < 0.0002 m. Allow ~3.5 se.
+    """
+    d = np.array([diameter_at_height(t, 0.30) for t in big_row.trees])
+    assert len(d) == N_BIG
+    assert d.mean() == pytest.approx(0.069, abs=0.0022)
+    assert d.std(ddof=1) == pytest.approx(0.0085, abs=0.0015)
+    assert d.min() >= 0.04 - 1e-9 and d.max() <= 0.09 + 1e-9
+
+
+def test_tree_heights(big_row):
+    """Heights in the design's 1.9-2.6 m, with an allowance at the bottom.
+
+    A tree's drawn height is the top of its canopy envelope; the top leaves are kept only where their centre
+    is at least 3 cm below it and inside the narrowing envelope tip, and a leaf's tip reaches at most 4 cm
+    above its centre. So the highest point lies from a few cm to ~0.1 m under the drawn height (at most 1 cm
+    over it).
+    """
+    h = np.array([tree_height(t) for t in big_row.trees])
+    assert h.min() >= 1.9 - 0.12
+    assert h.max() <= 2.6 + 0.01
+    # Spread over the whole range (uniform 1.9-2.6: mean 2.25, sd 0.2).
+    assert np.mean(h) == pytest.approx(2.25 - 0.04, abs=0.06)
+    assert np.std(h) == pytest.approx(0.7 / np.sqrt(12), abs=0.04)
+
+
+def _cube_samples(rng: np.random.Generator, lo: np.ndarray, size: float, n_edge: int = 21,
+                  n_inner: int = 3000) -> np.ndarray:
+    """Points on a cube's faces (n_edge x n_edge grid per face) and uniform inside it. (N, 3)"""
+    g = np.linspace(0, size, n_edge)
+    A, B = np.meshgrid(g, g)
+    a, b = A.ravel(), B.ravel()
+    z, o = np.zeros_like(a), np.full_like(a, size)
+    faces = [np.stack(f, 1) for f in ((a, b, z), (a, b, o), (a, z, b), (a, o, b), (z, a, b), (o, a, b))]
+    # Tiny jitter so that the grid's co-spherical points do not make a degenerate Delaunay.
+    surf = np.vstack(faces) + rng.normal(0, 1e-4 * size, (6 * len(a), 3))
+    surf = np.clip(surf, 0, size)
+    inner = rng.uniform(0, size, (n_inner, 3))
+    return lo + np.vstack([surf, inner])
+
+
+def test_alpha_complex_volume_cube():
+    """A unit cube densely sampled (surface + interior): volume 1 within 2 %."""
+    rng = np.random.default_rng(0)
+    pts = _cube_samples(rng, np.zeros(3), 1.0)
+    assert alpha_complex_volume(pts, alpha=0.3) == pytest.approx(1.0, rel=0.02)
+
+
+def test_alpha_complex_volume_sphere():
+    """A sphere of radius 0.5 (Fibonacci surface + uniform interior): 4/3 pi r^3 within 3 %.
+
+    With 3000 surface points the inscribed polyhedron misses < 0.5 % of the volume.
+    """
+    rng = np.random.default_rng(1)
+    r, n = 0.5, 3000
+    k = np.arange(n) + 0.5
+    phi = np.arccos(1 - 2 * k / n)
+    th = np.pi * (1 + 5**0.5) * k
+    surf = r * np.stack([np.cos(th) * np.sin(phi), np.sin(th) * np.sin(phi), np.cos(phi)], 1)
+    d = rng.normal(size=(4000, 3))
+    inner = d / np.linalg.norm(d, axis=1, keepdims=True) * (r * rng.uniform(0, 1, (4000, 1)) ** (1 / 3))
+    vol = alpha_complex_volume(np.vstack([surf, inner]) + [3.0, -1.0, 2.0], alpha=0.2)
+    assert vol == pytest.approx(4 / 3 * np.pi * r**3, rel=0.03)
+
+
+def test_alpha_complex_is_not_the_convex_hull():
+    """Two unit cubes 0.6 m apart: the alpha complex (alpha 0.25) bridges nothing; alpha 10 gives the hull."""
+    rng = np.random.default_rng(2)
+    pts = np.vstack([_cube_samples(rng, np.zeros(3), 1.0, 13, 600),
+                     _cube_samples(rng, np.array([1.6, 0.0, 0.0]), 1.0, 13, 600)])
+    assert alpha_complex_volume(pts, alpha=0.25) == pytest.approx(2.0, rel=0.02)
+    assert alpha_complex_volume(pts, alpha=10.0) == pytest.approx(2.6, rel=0.02)
