@@ -97,7 +97,7 @@ class PathSpec(_S):
     # single_pass: one level sweep per side (trunks only); loop: one drive around the row, one bag
     mode: Literal["two_sweep", "single_pass", "loop"] = "two_sweep"
     distance_m: float = Field(1.25, gt=0.3)  # camera to trunk line
-    low_height_m: float = Field(0.75, gt=0.0)  # camera above ground, level sweep
+    low_height_m: float = Field(0.62, gt=0.0)  # camera above ground, level sweep (sees ~0.15-1.1 m)
     high_height_m: float = Field(2.8, gt=0.0)  # camera above ground, raised sweep
     high_tilt_deg: float = Field(25.0, ge=0.0, le=80.0)  # downward tilt of the raised sweep
     speed_mps: float = Field(0.5, gt=0.0)

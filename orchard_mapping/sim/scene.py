@@ -42,6 +42,7 @@ class MeshBuilder:
     albedo: list[np.ndarray] = field(default_factory=list)
     sway: list[np.ndarray] = field(default_factory=list)  # per-vertex wind weight (0 = rigid)
     n_vertices: int = 0
+    n_triangles: int = 0
 
     def add(self, v: np.ndarray, t: np.ndarray, cls: Cls, inst: int | np.ndarray,
             albedo: np.ndarray, sway: np.ndarray | float = 0.0) -> None:
@@ -53,6 +54,7 @@ class MeshBuilder:
         self.albedo.append(np.broadcast_to(np.asarray(albedo, np.float32), (n_t, 3)).copy())
         self.sway.append(np.broadcast_to(np.asarray(sway, np.float32), (len(v),)).copy())
         self.n_vertices += len(v)
+        self.n_triangles += n_t
 
 
 @dataclass(frozen=True)
@@ -356,7 +358,7 @@ def _build_tree(mb: MeshBuilder, rng: np.random.Generator, sc: Scenario, tid: in
     diam = np.where(s <= s_clear, d_lin, d_clear * (1 - 0.8 * frac ** 0.8))
     # Bark roughness: a few mm of radial noise along the axis keeps the cylinder honest.
     v, t = tube(axis, diam / 2, 20)
-    t0 = sum(len(x) for x in mb.triangles)
+    t0 = mb.n_triangles
     bark = np.array([0.36, 0.27, 0.2]) * rng.uniform(0.85, 1.15)
     mb.add(v, t, Cls.TRUNK, tid, bark)
     trunk_tri = np.array([t0, t0 + len(t)])
@@ -430,7 +432,7 @@ def _build_tree(mb: MeshBuilder, rng: np.random.Generator, sc: Scenario, tid: in
     hue = rng.uniform(0, 1, (nl, 1))
     alb = (np.array([0.17, 0.38, 0.10]) * (1 - hue) + np.array([0.35, 0.48, 0.14]) * hue) * rng.uniform(0.7, 1.25, (nl, 1))
     alb = np.repeat(alb, 2, axis=0)
-    t_leaf0 = sum(len(x) for x in mb.triangles)
+    t_leaf0 = mb.n_triangles
     radial = np.linalg.norm(rel[keep], axis=1) / np.maximum(envelope_r(hh[keep], phi[keep]), 0.05)
     mb.add(v, t, Cls.LEAF, tid, alb, sway=np.repeat(np.clip(radial, 0.2, 1.0), 4))
     leaf_tri = np.arange(t_leaf0, t_leaf0 + len(t))

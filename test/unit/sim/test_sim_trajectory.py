@@ -47,7 +47,7 @@ def test_truth_stamps_are_bag_colour_stamps(standard_sim):
 
 
 def test_two_sweep_level_then_raised(standard_sim):
-    """Each side: a level sweep at 0.75 m, then back along the row raised ~2 m higher and tilted down 25 deg."""
+    """Each side: a level sweep at low_height_m, then back along the row raised to high_height_m, tilted down."""
     p = standard_sim.scenario.path
     for side in ("front", "back"):
         pitch, height, poses = _pitch_and_height(standard_sim, side)
@@ -58,8 +58,8 @@ def test_two_sweep_level_then_raised(standard_sim):
         # Level sweep first, raised sweep last (the turn at the row end lies between).
         assert np.flatnonzero(level).max() < np.flatnonzero(raised).min()
         assert level[0] and raised[-1]
-        assert np.median(height[raised]) - np.median(height[level]) == pytest.approx(2.05, abs=0.05)
-        assert np.median(pitch[raised]) == pytest.approx(-25.0, abs=1.0)
+        assert np.median(height[raised]) - np.median(height[level]) == pytest.approx(p.high_height_m - p.low_height_m, abs=0.05)
+        assert np.median(pitch[raised]) == pytest.approx(-p.high_tilt_deg, abs=1.0)
         assert np.median(pitch[level]) == pytest.approx(0.0, abs=1.0)
         # The camera stands on its side of the row, looking across it, and returns along the same line.
         sgn = -1.0 if side == "front" else 1.0
