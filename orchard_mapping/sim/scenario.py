@@ -98,8 +98,11 @@ class PathSpec(_S):
     mode: Literal["two_sweep", "single_pass", "loop"] = "two_sweep"
     distance_m: float = Field(1.25, gt=0.3)  # camera to trunk line
     low_height_m: float = Field(0.62, gt=0.0)  # camera above ground, level sweep (sees ~0.15-1.1 m)
-    high_height_m: float = Field(2.8, gt=0.0)  # camera above ground, raised sweep
-    high_tilt_deg: float = Field(25.0, ge=0.0, le=80.0)  # downward tilt of the raised sweep
+    # Raised sweep (camera on a stick): from 1.5 m at 3 m height, tilted down 35 deg, the view spans the trunk
+    # line from ~0.8 m up to the tree tops, overlapping the level sweep's upper part (loop closure needs that).
+    high_height_m: float = Field(3.0, gt=0.0)  # camera above ground, raised sweep
+    high_tilt_deg: float = Field(35.0, ge=0.0, le=80.0)  # downward tilt of the raised sweep
+    high_distance_m: float = Field(1.5, gt=0.3)  # camera to trunk line, raised sweep
     speed_mps: float = Field(0.5, gt=0.0)
     turn_s: float = Field(3.0, ge=0.5)  # time spent raising the camera at the row end
     jitter_m: float = Field(0.012, ge=0.0)  # hand-held position jitter amplitude

@@ -76,22 +76,25 @@ def side_path(sc: Scenario, side: str, row_x: tuple[float, float], terrain: Terr
     u = _ease(np.linspace(0, 1, n_sweep))
     xs = [start + u * (end - start)]
     hs = [np.full(n_sweep, p.low_height_m)]
+    dist = [np.full(n_sweep, p.distance_m)]
     pitch = [np.zeros(n_sweep)]
     if p.mode == "two_sweep":
         n_turn = max(2, int(round(p.turn_s * rate)))
         ut = _ease(np.linspace(0, 1, n_turn + 2)[1:-1])
         xs.append(np.full(n_turn, end))
         hs.append(p.low_height_m + ut * (p.high_height_m - p.low_height_m))
+        dist.append(p.distance_m + ut * (p.high_distance_m - p.distance_m))
         pitch.append(-ut * np.radians(p.high_tilt_deg))
         xs.append(end + u * (start - end))
         hs.append(np.full(n_sweep, p.high_height_m))
+        dist.append(np.full(n_sweep, p.high_distance_m))
         pitch.append(np.full(n_sweep, -np.radians(p.high_tilt_deg)))
     x = np.concatenate(xs)
     h = np.concatenate(hs)
     pit = np.concatenate(pitch)
     n = len(x)
     t = np.arange(n) / rate
-    y = np.full(n, sgn * p.distance_m)
+    y = sgn * np.concatenate(dist)
     jit = _smooth_noise(rng, t, p.jitter_m, 3)
     ang = np.radians(_smooth_noise(rng, t, p.jitter_deg, 3))
     pos = np.stack([x, y, terrain.height(x, y) + h], 1) + jit

@@ -61,9 +61,10 @@ def test_two_sweep_level_then_raised(standard_sim):
         assert np.median(height[raised]) - np.median(height[level]) == pytest.approx(p.high_height_m - p.low_height_m, abs=0.05)
         assert np.median(pitch[raised]) == pytest.approx(-p.high_tilt_deg, abs=1.0)
         assert np.median(pitch[level]) == pytest.approx(0.0, abs=1.0)
-        # The camera stands on its side of the row, looking across it, and returns along the same line.
+        # The camera stands on its side of the row, looking across it, and returns a little further out.
         sgn = -1.0 if side == "front" else 1.0
-        np.testing.assert_allclose(poses[:, 1, 3], sgn * p.distance_m, atol=0.06)
+        np.testing.assert_allclose(poses[level, 1, 3], sgn * p.distance_m, atol=0.06)
+        np.testing.assert_allclose(poses[raised, 1, 3], sgn * p.high_distance_m, atol=0.06)
         look = poses[:, :3, 2][:, :2]
         assert np.all(look[:, 1] * -sgn > 0.85 * np.linalg.norm(look, axis=1))
         x = poses[:, 0, 3]
