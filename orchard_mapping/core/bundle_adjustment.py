@@ -1,0 +1,407 @@
+"""Back end of single-side reconstruction: pose-graph optimisation and global BA.
+
+Paper: "Single-Side Reconstruction", eq. (objectBA). Every pose is T_odom_cam
+of the colour optical frame (x right, y down, z forward); lengths in metres,
+pixels in px. Keys follow gtsam's examples: X(k) keyframe pose (gtsam.Pose3 of
+T_odom_cam), L(j) landmark position (gtsam.Point3, odom).
+
+Only GTSAM's built-in C++ factors are used (projection, stereo, between,
+range, priors): a Python CustomFactor copies every variable on each call and
+is far too slow at this size (MEASURED.md "GTSAM 4.3.0 from Python").
+
+RGB-D mode (paper: eta = 1, s_c = 1). The 3D term E_i compares the measured
+point (pixel + aligned depth from the infrared stereo pair) with the
+projected landmark. An aligned depth pixel is exactly a rectified stereo
+observation: with a virtual baseline b, the right image column is
+uR = uL - fx b / z. RealSense depth comes from stereo disparity, so its noise
+is constant in disparity: sd(z) = z^2 sd_d / (fx b). Our depth model
+sd(z) = 0.004 z^2 (m) therefore gives sd_d = 0.004 fx b (0.123 px for
+fx = 615 px, b = 0.05 m), the default of `disparity_sigma`. The virtual
+baseline itself does not change the solution (only sd_d / (fx b) matters).
+Pixel and disparity noise are independent, so (uL, uR, v) has the full
+covariance [[sp^2, sp^2, 0], [sp^2, sp^2 + sd^2, 0], [0, 0, sp^2]].
+Observations without depth (0 = missing) get a plain projection factor.
+
+RGB-only mode (eta = 0): projection factors only; the reconstruction is
+defined up to a similarity, so the gauge has 7 degrees of freedom (see
+`_add_gauge`).
+"""
+
+from __future__ import annotations
+
+import logging
+import time
+from dataclasses import dataclass
+from typing import Literal, Sequence
+
+import gtsam
+import numpy as np
+from gtsam.symbol_shorthand import L, X
+
+from orchard_mapping.core.sidemap import LoopClosure, Observations
+from orchard_mapping.core.types import CameraIntrinsics
+from orchard_mapping.errors import OrchardMappingError
+
+__all__ = [
+    "BAResult",
+    "ReconstructionError",
+    "bundle_adjust",
+    "default_disparity_sigma",
+    "optimise_pose_graph",
+]
+
+logger = logging.getLogger(__name__)
+
+DEPTH_NOISE_COEFF = 0.004  # 1/m: depth sd = DEPTH_NOISE_COEFF * z^2 (RealSense-like)
+GAUGE_SIGMA = 1e-6  # rad and m: "fixed" for the gauge priors
+BRIDGE_MIN_OBSERVATIONS = 3  # a keyframe with fewer used observations is held to its neighbour
+
+
+class ReconstructionError(OrchardMappingError):
+    """Inputs of the reconstruction back end are inconsistent, or the optimiser failed."""
+
+
+@dataclass(frozen=True)
+class BAResult:
+    """Outcome of `bundle_adjust`."""
+
+    poses: np.ndarray  # (K, 4, 4) optimised T_odom_cam
+    landmarks: np.ndarray  # (L, 3) m, odom; NaN where a landmark was not optimised
+    initial_error: float  # factor-graph error (0.5 sum of robust whitened squares) at the start
+    final_error: float  # ... at the solution
+    iterations: int  # Levenberg-Marquardt iterations
+    n_factors: int  # factors in the graph (priors included)
+    n_landmarks_used: int  # landmarks that entered the graph
+    seconds: float  # s, graph building + optimisation
+
+
+def default_disparity_sigma(fx: float, baseline_m: float) -> float:
+    """Disparity sd (px) equivalent to depth sd = 0.004 z^2 m: 0.004 * fx * b."""
+    return DEPTH_NOISE_COEFF * fx * baseline_m
+
+
+# ----------------------------------------------------------------- validation
+
+
+def _check_poses(poses: np.ndarray) -> np.ndarray:
+    poses = np.asarray(poses, dtype=float)
+    if poses.ndim != 3 or poses.shape[1:] != (4, 4) or poses.shape[0] < 1:
+        raise ReconstructionError(f"poses must be (K, 4, 4) with K >= 1, got shape {poses.shape}")
+    bad = np.flatnonzero(~np.all(np.isfinite(poses), axis=(1, 2)))
+    if bad.size:
+        raise ReconstructionError(f"poses of keyframes {bad[:10].tolist()} are not finite")
+    return poses
+
+
+def _check_loops(loops: Sequence[LoopClosure], n_poses: int) -> None:
+    for i, lc in enumerate(loops):
+        for kf in (lc.kf_a, lc.kf_b):
+            if not 0 <= int(kf) < n_poses:
+                raise ReconstructionError(
+                    f"loop closure {i} ({lc.kf_a} -> {lc.kf_b}) names keyframe {kf}, "
+                    f"but there are {n_poses} keyframes"
+                )
+        T = np.asarray(lc.T_a_b, dtype=float)
+        if T.shape != (4, 4) or not np.all(np.isfinite(T)):
+            raise ReconstructionError(f"loop closure {i} ({lc.kf_a} -> {lc.kf_b}): T_a_b must be a finite (4, 4)")
+
+
+def _check_observations(obs: Observations, n_poses: int, n_landmarks: int) -> tuple[np.ndarray, ...]:
+    kf = np.asarray(obs.keyframe)
+    lm = np.asarray(obs.landmark)
+    uv = np.asarray(obs.uv, dtype=float)
+    depth = np.asarray(obs.depth, dtype=float)
+    m = kf.shape[0] if kf.ndim == 1 else -1
+    if kf.ndim != 1 or lm.shape != (m,) or uv.shape != (m, 2) or depth.shape != (m,):
+        raise ReconstructionError(
+            "observations must be keyframe (M,), landmark (M,), uv (M, 2), depth (M,); got "
+            f"{kf.shape}, {lm.shape}, {uv.shape}, {depth.shape}"
+        )
+    if m and not (np.issubdtype(kf.dtype, np.integer) and np.issubdtype(lm.dtype, np.integer)):
+        raise ReconstructionError(f"observation ids must be integers, got {kf.dtype} and {lm.dtype}")
+    bad = np.flatnonzero((kf < 0) | (kf >= n_poses))
+    if bad.size:
+        raise ReconstructionError(
+            f"observation {bad[0]} names keyframe {kf[bad[0]]}, but there are {n_poses} keyframes "
+            f"({bad.size} such observations)"
+        )
+    bad = np.flatnonzero((lm < 0) | (lm >= n_landmarks))
+    if bad.size:
+        raise ReconstructionError(
+            f"observation {bad[0]} names landmark {lm[bad[0]]}, but there are {n_landmarks} landmarks "
+            f"({bad.size} such observations)"
+        )
+    bad = np.flatnonzero(~np.all(np.isfinite(uv), axis=1) | ~np.isfinite(depth) | (depth < 0.0))
+    if bad.size:
+        raise ReconstructionError(
+            f"observation {bad[0]} (keyframe {kf[bad[0]]}, landmark {lm[bad[0]]}) has non-finite pixels "
+            f"or a negative / non-finite depth ({bad.size} such observations)"
+        )
+    return kf.astype(np.int64), lm.astype(np.int64), uv, depth
+
+
+def _positive(name: str, value: float) -> float:
+    value = float(value)
+    if not np.isfinite(value) or value <= 0.0:
+        raise ReconstructionError(f"{name} must be a positive number, got {value}")
+    return value
+
+
+# -------------------------------------------------------------- noise models
+
+
+def _robust(base: gtsam.noiseModel.Base, huber_k: float | None) -> gtsam.noiseModel.Base:
+    """Huber on the whitened residual (k in sigmas); None keeps the Gaussian model."""
+    if huber_k is None:
+        return base
+    return gtsam.noiseModel.Robust.Create(gtsam.noiseModel.mEstimator.Huber.Create(float(huber_k)), base)
+
+
+def _pose_sigmas(rot_deg: float, trans_m: float) -> gtsam.noiseModel.Diagonal:
+    # Pose3 tangent order: rotation (rad) first, then translation (m).
+    return gtsam.noiseModel.Diagonal.Sigmas(
+        np.array([np.radians(rot_deg)] * 3 + [trans_m] * 3, dtype=float)
+    )
+
+
+def _gauge_prior(key: int, pose: np.ndarray) -> gtsam.PriorFactorPose3:
+    # Gauge: the map frame odom_<side> is the first keyframe's camera frame; the
+    # measurements only fix relative geometry, so keyframe 0 is held where it is.
+    return gtsam.PriorFactorPose3(key, gtsam.Pose3(pose), gtsam.noiseModel.Isotropic.Sigma(6, GAUGE_SIGMA))
+
+
+def _add_loops(
+    graph: gtsam.NonlinearFactorGraph,
+    loops: Sequence[LoopClosure],
+    rot_deg: float,
+    trans_m: float,
+    huber_k: float | None,
+) -> None:
+    noise = _robust(_pose_sigmas(rot_deg, trans_m), huber_k)
+    for lc in loops:
+        # T_a_b = T_odom_a^-1 T_odom_b, exactly what BetweenFactorPose3(X(a), X(b)) measures.
+        graph.add(gtsam.BetweenFactorPose3(X(int(lc.kf_a)), X(int(lc.kf_b)), gtsam.Pose3(np.asarray(lc.T_a_b)), noise))
+
+
+def _optimise(
+    graph: gtsam.NonlinearFactorGraph, initial: gtsam.Values, max_iterations: int, what: str
+) -> tuple[gtsam.Values, float, float, int]:
+    params = gtsam.LevenbergMarquardtParams()
+    params.setMaxIterations(int(max_iterations))
+    # Stop when an iteration lowers the error by < 1e-5 (relative): with Huber the
+    # tail converges linearly and further iterations no longer move the poses.
+    params.setRelativeErrorTol(1e-5)
+    params.setAbsoluteErrorTol(1e-6)
+    initial_error = float(graph.error(initial))
+    try:
+        optimizer = gtsam.LevenbergMarquardtOptimizer(graph, initial, params)
+        result = optimizer.optimize()
+    except RuntimeError as err:  # gtsam's C++ exceptions (indeterminant system, cheirality, ...)
+        raise ReconstructionError(f"{what}: optimisation failed: {err}") from err
+    final_error = float(graph.error(result))
+    iterations = int(optimizer.iterations())
+    logger.info("%s: error %.6g -> %.6g in %d iterations", what, initial_error, final_error, iterations)
+    return result, initial_error, final_error, iterations
+
+
+def _poses_from(values: gtsam.Values, n: int) -> np.ndarray:
+    return np.stack([values.atPose3(X(k)).matrix() for k in range(n)])  # (K, 4, 4)
+
+
+# ----------------------------------------------------------------- pose graph
+
+
+def optimise_pose_graph(
+    poses: np.ndarray,
+    loops: Sequence[LoopClosure],
+    *,
+    sigma_rot_deg: float = 0.5,
+    sigma_trans_m: float = 0.01,
+    loop_sigma_rot_deg: float = 1.0,
+    loop_sigma_trans_m: float = 0.02,
+    huber_k: float | None = 1.345,
+    max_iterations: int = 100,
+) -> np.ndarray:
+    """Pose-graph optimisation (paper: before global BA, to close loops).
+
+    poses: (K, 4, 4) front-end T_odom_cam; consecutive relative poses become
+    BetweenFactorPose3 with (sigma_rot_deg, sigma_trans_m); each loop closure a
+    Huber-robust BetweenFactorPose3 from `T_a_b`. Returns (K, 4, 4) poses.
+    """
+    poses = _check_poses(poses)
+    _check_loops(loops, len(poses))
+    sigma_rot_deg = _positive("sigma_rot_deg", sigma_rot_deg)
+    sigma_trans_m = _positive("sigma_trans_m", sigma_trans_m)
+    loop_sigma_rot_deg = _positive("loop_sigma_rot_deg", loop_sigma_rot_deg)
+    loop_sigma_trans_m = _positive("loop_sigma_trans_m", loop_sigma_trans_m)
+    n = len(poses)
+
+    graph = gtsam.NonlinearFactorGraph()
+    initial = gtsam.Values()
+    pose3 = [gtsam.Pose3(T) for T in poses]
+    for k, p in enumerate(pose3):
+        initial.insert(X(k), p)
+    graph.add(_gauge_prior(X(0), poses[0]))
+    odom_noise = _pose_sigmas(sigma_rot_deg, sigma_trans_m)
+    for k in range(n - 1):
+        graph.add(gtsam.BetweenFactorPose3(X(k), X(k + 1), pose3[k].between(pose3[k + 1]), odom_noise))
+    _add_loops(graph, loops, loop_sigma_rot_deg, loop_sigma_trans_m, huber_k)
+
+    result, _, _, _ = _optimise(graph, initial, max_iterations, f"pose graph ({n} keyframes, {len(loops)} loops)")
+    return _poses_from(result, n)
+
+
+# ---------------------------------------------------------- bundle adjustment
+
+
+def _add_gauge(
+    graph: gtsam.NonlinearFactorGraph, poses: np.ndarray, mode: str, scale_anchor: int | None
+) -> None:
+    graph.add(_gauge_prior(X(0), poses[0]))
+    if mode == "rgb" and scale_anchor is not None:
+        # RGB only, the map is scale free: the 7th gauge freedom (scale) is fixed by
+        # holding the distance from keyframe 0 to the keyframe farthest from it at its
+        # initial value. A range factor fixes exactly that one freedom and, unlike a
+        # prior on a keyframe's position, does not pull its direction towards the
+        # (drifted) initial estimate. The farthest keyframe gives the best-conditioned
+        # baseline.
+        dist = float(np.linalg.norm(poses[scale_anchor, :3, 3] - poses[0, :3, 3]))
+        graph.add(
+            gtsam.RangeFactorPose3(X(0), X(scale_anchor), dist, gtsam.noiseModel.Isotropic.Sigma(1, GAUGE_SIGMA))
+        )
+
+
+def bundle_adjust(
+    poses: np.ndarray,
+    landmarks: np.ndarray,
+    obs: Observations,
+    intr: CameraIntrinsics,
+    *,
+    mode: Literal["rgbd", "rgb"] = "rgbd",
+    loops: Sequence[LoopClosure] = (),
+    pixel_sigma: float = 1.0,
+    disparity_sigma: float | None = None,
+    baseline_m: float = 0.05,
+    huber_k: float | None = 1.345,
+    loop_sigma_rot_deg: float = 1.0,
+    loop_sigma_trans_m: float = 0.02,
+    bridge_sigma_rot_deg: float = 1.0,
+    bridge_sigma_trans_m: float = 0.05,
+    max_iterations: int = 50,
+    min_observations: int = 2,
+) -> BAResult:
+    """Global bundle adjustment, eq. (objectBA), with Huber on every term.
+
+    poses: (K, 4, 4) initial T_odom_cam; landmarks: (L, 3) initial positions
+    in odom (NaN rows are left out); obs: observations of landmarks at
+    keyframes. mode "rgbd": stereo factors where depth > 0 (see module doc),
+    projection factors elsewhere; "rgb": projection factors only (depth
+    ignored), scale fixed by a range prior. pixel_sigma (px) and
+    disparity_sigma (px; None = 0.004 fx baseline_m, i.e. depth sd
+    0.004 z^2 m) weight the terms; huber_k in sigmas (None = no robust
+    kernel). Landmarks with fewer than `min_observations` observations are
+    left out. A keyframe left with fewer than 3 observations is tied to the
+    previous one by its initial relative pose (bridge sigmas), so the system
+    stays determined. Loop closures enter as robust BetweenFactorPose3.
+    """
+    t0 = time.perf_counter()
+    if mode not in ("rgbd", "rgb"):
+        raise ReconstructionError(f"mode must be 'rgbd' or 'rgb', got {mode!r}")
+    poses = _check_poses(poses)
+    landmarks = np.asarray(landmarks, dtype=float)
+    if landmarks.ndim != 2 or landmarks.shape[1] != 3:
+        raise ReconstructionError(f"landmarks must be (L, 3), got shape {landmarks.shape}")
+    n_kf, n_lm = len(poses), len(landmarks)
+    kf, lm, uv, depth = _check_observations(obs, n_kf, n_lm)
+    _check_loops(loops, n_kf)
+    pixel_sigma = _positive("pixel_sigma", pixel_sigma)
+    baseline_m = _positive("baseline_m", baseline_m)
+    if disparity_sigma is None:
+        disparity_sigma = default_disparity_sigma(intr.fx, baseline_m)
+    disparity_sigma = _positive("disparity_sigma", disparity_sigma)
+    if intr.fx <= 0 or intr.fy <= 0:
+        raise ReconstructionError(f"intrinsics need positive focal lengths, got fx={intr.fx}, fy={intr.fy}")
+    if mode == "rgb":
+        depth = np.zeros_like(depth)  # eta = 0: the 3D term is off
+
+    # Landmarks used: a finite initial position and enough observations.
+    counts = np.bincount(lm, minlength=n_lm)  # (L,)
+    used_lm = (counts >= int(min_observations)) & np.all(np.isfinite(landmarks), axis=1)  # (L,)
+    keep = used_lm[lm]  # (M,)
+    kf, lm, uv, depth = kf[keep], lm[keep], uv[keep], depth[keep]
+    if not np.any(used_lm):
+        raise ReconstructionError(
+            f"no landmark has a finite initial position and >= {min_observations} observations "
+            f"({n_lm} landmarks, {len(obs)} observations)"
+        )
+
+    graph = gtsam.NonlinearFactorGraph()
+    initial = gtsam.Values()
+    for k in range(n_kf):
+        initial.insert(X(k), gtsam.Pose3(poses[k]))
+    for j in np.flatnonzero(used_lm):
+        initial.insert(L(int(j)), gtsam.Point3(*landmarks[j]))
+
+    # One factor per observation: gtsam's Python API builds factors one by one.
+    K_mono = gtsam.Cal3_S2(intr.fx, intr.fy, 0.0, intr.cx, intr.cy)
+    K_stereo = gtsam.Cal3_S2Stereo(intr.fx, intr.fy, 0.0, intr.cx, intr.cy, baseline_m)
+    mono_noise = _robust(gtsam.noiseModel.Isotropic.Sigma(2, pixel_sigma), huber_k)
+    sp2, sd2 = pixel_sigma**2, disparity_sigma**2
+    stereo_cov = np.array([[sp2, sp2, 0.0], [sp2, sp2 + sd2, 0.0], [0.0, 0.0, sp2]])  # (uL, uR, v)
+    stereo_noise = _robust(gtsam.noiseModel.Gaussian.Covariance(stereo_cov), huber_k)
+    has_depth = depth > 0.0  # (M,)
+    u_right = uv[:, 0] - np.divide(intr.fx * baseline_m, depth, out=np.zeros_like(depth), where=has_depth)  # (M,)
+    for i in range(len(kf)):
+        xk, lj = X(int(kf[i])), L(int(lm[i]))
+        if has_depth[i]:
+            meas = gtsam.StereoPoint2(uv[i, 0], u_right[i], uv[i, 1])
+            graph.add(gtsam.GenericStereoFactor3D(meas, stereo_noise, xk, lj, K_stereo))
+        else:
+            graph.add(gtsam.GenericProjectionFactorCal3_S2(uv[i], mono_noise, xk, lj, K_mono))
+
+    scale_anchor = None
+    if mode == "rgb":
+        if n_kf < 2:
+            raise ReconstructionError("RGB-only bundle adjustment needs at least 2 keyframes")
+        dist = np.linalg.norm(poses[:, :3, 3] - poses[0, :3, 3], axis=1)  # (K,)
+        scale_anchor = int(np.argmax(dist))
+        if dist[scale_anchor] < 1e-6:
+            raise ReconstructionError("RGB-only bundle adjustment: all keyframes at one position, scale undefined")
+    _add_gauge(graph, poses, mode, scale_anchor)
+
+    # Keyframes the observations leave (nearly) undetermined are tied to the previous one.
+    per_kf = np.bincount(kf, minlength=n_kf)  # (K,)
+    weak = [k for k in range(1, n_kf) if per_kf[k] < BRIDGE_MIN_OBSERVATIONS]
+    if weak:
+        logger.warning(
+            "bundle adjustment: keyframes %s have < %d observations, tied to their predecessor",
+            weak[:10],
+            BRIDGE_MIN_OBSERVATIONS,
+        )
+        bridge = _pose_sigmas(bridge_sigma_rot_deg, bridge_sigma_trans_m)
+        for k in weak:
+            rel = gtsam.Pose3(poses[k - 1]).between(gtsam.Pose3(poses[k]))
+            graph.add(gtsam.BetweenFactorPose3(X(k - 1), X(k), rel, bridge))
+    _add_loops(graph, loops, loop_sigma_rot_deg, loop_sigma_trans_m, huber_k)
+
+    what = (
+        f"bundle adjustment ({mode}: {n_kf} keyframes, {int(used_lm.sum())} landmarks, "
+        f"{int(has_depth.sum())} stereo + {int((~has_depth).sum())} projection factors)"
+    )
+    result, e0, e1, iters = _optimise(graph, initial, max_iterations, what)
+
+    out_lm = np.full((n_lm, 3), np.nan)  # (L, 3)
+    for j in np.flatnonzero(used_lm):
+        out_lm[j] = result.atPoint3(L(int(j)))
+    seconds = time.perf_counter() - t0
+    logger.info("%s: %.3f s", what, seconds)
+    return BAResult(
+        poses=_poses_from(result, n_kf),
+        landmarks=out_lm,
+        initial_error=e0,
+        final_error=e1,
+        iterations=iters,
+        n_factors=int(graph.size()),
+        n_landmarks_used=int(used_lm.sum()),
+        seconds=seconds,
+    )
