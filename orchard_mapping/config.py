@@ -13,6 +13,7 @@ from typing import Any, Literal
 import yaml
 from pydantic import BaseModel, ConfigDict, Field, ValidationError
 
+from orchard_mapping.core.odometry import FrontEndParams
 from orchard_mapping.errors import ConfigError
 from orchard_mapping.resources import config_dir
 
@@ -60,6 +61,7 @@ class OrchardConfig(_Section):
 
     input: InputConfig = InputConfig()
     frames: FramesConfig = FramesConfig()
+    odometry: FrontEndParams = FrontEndParams()
     evaluate: EvaluateConfig = EvaluateConfig()
     seed: int = 0
 
@@ -97,7 +99,7 @@ def validation_message(err: ValidationError, source: str) -> str:
     lines = []
     for e in err.errors():
         key = ".".join(str(p) for p in e["loc"]) or "<root>"
-        if e["type"] == "extra_forbidden":
+        if e["type"] in ("extra_forbidden", "unexpected_keyword_argument"):
             lines.append(f"unknown key '{key}'")
         else:
             lines.append(f"bad value for '{key}': {e['msg']} (got {e.get('input')!r})")

@@ -91,6 +91,42 @@ def simulate(
 
 
 @app.command()
+def run(
+    front: Path = typer.Argument(..., help="Front-side bag (rosbag2 folder or .mcap), or one bag with the side topic."),
+    back: Optional[Path] = typer.Argument(None, help="Back-side bag; omit for a single bag labelled by side."),
+    out: Path = typer.Option(..., help="Result folder (docs/results.md)."),
+    config: Optional[Path] = typer.Option(None, help="Configuration file overlaid on config/default.yaml."),
+) -> None:
+    """Reconstruct each side of the row: trajectories (TUM) into the result folder."""
+    from rich.progress import BarColumn, MofNCompleteColumn, Progress, TextColumn, TimeRemainingColumn
+
+    from orchard_mapping.config import load_config
+    from orchard_mapping.errors import OrchardMappingError
+    from orchard_mapping.pipeline import run as run_pipeline
+
+    try:
+        cfg = load_config(config)
+        with Progress(TextColumn("{task.description}"), BarColumn(), MofNCompleteColumn(), TimeRemainingColumn(),
+                      console=err_console) as bar:
+            tasks: dict[str, Any] = {}
+
+            def progress(label: str, i: int, n: int) -> None:
+                if label not in tasks:
+                    tasks[label] = bar.add_task(f"reconstructing {label}", total=n)
+                bar.update(tasks[label], completed=i)
+
+            result = run_pipeline(front, back, out, cfg, progress=progress)
+    except OrchardMappingError as err:
+        raise _fail(err) from err
+    t = result.timings
+    for side, sm in result.sides.items():
+        console.print(f"{side}: {len(sm.keyframe_stamps)} keyframes, {len(sm.observations)} observations")
+    total = sum(t.stages.values())
+    rtf = total / t.recording_duration_s if t.recording_duration_s > 0 else float("nan")
+    console.print(f"{t.frames} frames in {total:.1f} s (real-time factor {rtf:.2f}); results in {out}")
+
+
+@app.command()
 def inspect(
     path: Path = typer.Argument(..., help="A simulation folder (with ground_truth.json), a rosbag2 folder or .mcap."),
 ) -> None:

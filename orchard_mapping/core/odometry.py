@@ -1,0 +1,348 @@
+"""Front end of single-side reconstruction: RGB-D visual odometry with keyframes.
+
+The paper computes each consecutive pair's rigid transform with three-point
+RANSAC on SIFT matches with valid depth, then refines it by pairwise BA. We
+track corners with pyramidal Lucas-Kanade from frame to frame (cheaper than
+matching descriptors in every frame, and long tracks give bundle adjustment
+many observations per landmark) and estimate each frame's pose by RANSAC PnP
+against landmarks seeded from keyframe depth: the same minimal three-point
+RANSAC, against a map instead of the previous frame, which drifts less.
+Landmark positions are refined at each keyframe by the inverse-variance
+weighted mean of their depth back-projections (RealSense depth noise grows
+with z^2), the pairwise-refinement step of the paper in closed form.
+
+When tracking fails (blank frames, motion blur, a hand over the lens) the
+front end re-localises against the last keyframe with ORB descriptors and
+logs it; frames it cannot place keep a NaN pose.
+"""
+
+from __future__ import annotations
+
+import logging
+from collections.abc import Iterable
+from dataclasses import dataclass
+
+import cv2
+import numpy as np
+
+from orchard_mapping.core.sidemap import FrontEndResult, Keyframe, Observations
+from orchard_mapping.core.types import CameraIntrinsics, RGBDFrame
+
+log = logging.getLogger(__name__)
+
+
+@dataclass(frozen=True)
+class FrontEndParams:
+    """Front-end settings (config section `odometry`)."""
+
+    __pydantic_config__ = {"extra": "forbid"}  # config files: unknown keys are errors
+
+    max_corners: int = 700  # corners kept per keyframe (new ones fill empty image regions)
+    corner_quality: float = 0.003  # relative to the strongest corner (foliage has low contrast)
+    corner_min_distance_px: int = 10
+    klt_window_px: int = 21
+    klt_levels: int = 3
+    klt_fb_max_px: float = 1.0  # forward-backward consistency
+    pnp_reprojection_px: float = 2.0
+    pnp_iterations: int = 100
+    min_inliers: int = 25  # fewer PnP inliers: tracking is lost
+    keyframe_translation_m: float = 0.08
+    keyframe_rotation_deg: float = 4.0
+    keyframe_min_tracked: int = 250  # fewer live tracks: make a keyframe to seed new landmarks
+    landmark_depth_max_m: float = 6.0  # the background rows (~4.6 m) still fix rotation; BA weights them by z^2
+    depth_edge_m: float = 0.03  # reject depth within a 3x3 window spanning more than this (+2 % of z)
+    depth_sigma_coeff: float = 0.004  # sensor depth sd = coeff * z^2 (m), weights landmark refinement
+    orb_features: int = 1000  # per keyframe, for relocalisation and loop detection
+
+
+def backproject(uv: np.ndarray, z: np.ndarray, intr: CameraIntrinsics) -> np.ndarray:
+    """Pixels (N, 2) with depth (N,) -> camera-frame points (N, 3)."""
+    x = (uv[:, 0] - intr.cx) / intr.fx * z
+    y = (uv[:, 1] - intr.cy) / intr.fy * z
+    return np.stack([x, y, z], axis=1)
+
+
+def sample_depth(depth: np.ndarray, uv: np.ndarray, edge_m: float, sigma_coeff: float = 0.004) -> np.ndarray:
+    """Depth (N,) at pixels uv (N, 2): median of the 3x3 window; 0 where missing or on a depth edge.
+
+    A window is an edge (where flying pixels live) when its spread exceeds edge_m plus five times the
+    sensor noise at that range (sd = sigma_coeff * z^2): nine samples of pure noise span about 3 sd.
+    """
+    h, w = depth.shape
+    iu = np.clip(np.round(uv[:, 0]).astype(int), 1, w - 2)
+    iv = np.clip(np.round(uv[:, 1]).astype(int), 1, h - 2)
+    win = np.stack([depth[iv + dv, iu + du] for dv in (-1, 0, 1) for du in (-1, 0, 1)], axis=1)  # (N, 9)
+    z = np.median(win, axis=1).astype(np.float64)
+    valid = np.all(win > 0, axis=1) & (win.max(axis=1) - win.min(axis=1) < edge_m + 5 * sigma_coeff * z * z)
+    return np.where(valid, z, 0.0)
+
+
+def _pose_from_rt(rvec: np.ndarray, tvec: np.ndarray) -> np.ndarray:
+    """T_odom_cam from OpenCV's (rvec, tvec) = T_cam_odom."""
+    R, _ = cv2.Rodrigues(rvec)
+    T = np.eye(4)
+    T[:3, :3] = R.T
+    T[:3, 3] = -R.T @ tvec.ravel()
+    return T
+
+
+def _rt_from_pose(T_odom_cam: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    R = T_odom_cam[:3, :3].T
+    t = -R @ T_odom_cam[:3, 3]
+    return cv2.Rodrigues(R)[0], t.reshape(3, 1)
+
+
+def _rotation_deg(T: np.ndarray) -> float:
+    return float(np.degrees(np.arccos(np.clip((np.trace(T[:3, :3]) - 1) / 2, -1, 1))))
+
+
+class RGBDFrontEnd:
+    """Incremental RGB-D odometry; feed frames in order with `track`, then `result()`."""
+
+    def __init__(self, intr: CameraIntrinsics, params: FrontEndParams = FrontEndParams()) -> None:
+        self.K = intr
+        self.Kmat = intr.K
+        self.p = params
+        self.orb = cv2.ORB_create(nfeatures=params.orb_features)
+        self.matcher = cv2.BFMatcher(cv2.NORM_HAMMING)
+        # Map: landmark positions (odom) with accumulated inverse-variance weights.
+        self._lm_sum = np.zeros((0, 3))
+        self._lm_w = np.zeros(0)
+        # Live tracks in the previous frame.
+        self._pts = np.zeros((0, 2), np.float32)
+        self._ids = np.zeros(0, np.int64)
+        self._prev_gray: np.ndarray | None = None
+        self._pose: np.ndarray | None = None  # last good T_odom_cam
+        self._kf_pose: np.ndarray | None = None
+        self.keyframes: list[Keyframe] = []
+        self._obs: list[tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]] = []
+        self.stamps: list[float] = []
+        self.poses: list[np.ndarray] = []
+        self.events: list[str] = []
+        self.lost_frames = 0
+
+    # -- map
+
+    @property
+    def landmarks(self) -> np.ndarray:  # (L, 3)
+        return self._lm_sum / np.maximum(self._lm_w, 1e-12)[:, None]
+
+    def _weight(self, z: np.ndarray) -> np.ndarray:
+        sd = self.p.depth_sigma_coeff * z * z + 1e-3
+        return 1.0 / sd ** 2
+
+    def _add_landmarks(self, uv: np.ndarray, z: np.ndarray, T_odom_cam: np.ndarray) -> np.ndarray:
+        pc = backproject(uv, z, self.K)
+        pw = pc @ T_odom_cam[:3, :3].T + T_odom_cam[:3, 3]
+        w = self._weight(z)
+        start = len(self._lm_w)
+        self._lm_sum = np.vstack([self._lm_sum, pw * w[:, None]])
+        self._lm_w = np.concatenate([self._lm_w, w])
+        return np.arange(start, start + len(z))
+
+    def _refine_landmarks(self, ids: np.ndarray, uv: np.ndarray, z: np.ndarray, T_odom_cam: np.ndarray) -> None:
+        ok = z > 0
+        if not ok.any():
+            return
+        pc = backproject(uv[ok], z[ok], self.K)
+        pw = pc @ T_odom_cam[:3, :3].T + T_odom_cam[:3, 3]
+        w = self._weight(z[ok])
+        np.add.at(self._lm_sum, ids[ok], pw * w[:, None])
+        np.add.at(self._lm_w, ids[ok], w)
+
+    # -- per frame
+
+    def track(self, frame: RGBDFrame) -> np.ndarray:
+        """Estimate T_odom_cam of `frame` (NaN if it cannot be placed); keyframes are kept internally."""
+        if frame.depth is None:
+            raise ValueError("RGBDFrontEnd needs depth; use the RGB-only front end for colour-only input")
+        gray = cv2.cvtColor(frame.color, cv2.COLOR_RGB2GRAY)
+        if self._pose is None:
+            pose = self._initialise(gray, frame)
+        else:
+            pose = self._track_klt(gray, frame)
+            if pose is None:
+                pose = self._relocalise(gray, frame)
+        self.stamps.append(frame.stamp)
+        self.poses.append(pose if pose is not None else np.full((4, 4), np.nan))
+        self._prev_gray = gray
+        return self.poses[-1]
+
+    def _initialise(self, gray: np.ndarray, frame: RGBDFrame) -> np.ndarray | None:
+        pose = np.eye(4)
+        if not self._make_keyframe(gray, frame, pose, first=True):
+            self.events.append(f"frame {frame.index}: not enough texture or depth to start; waiting")
+            return None
+        self._pose = pose
+        return pose
+
+    def _track_klt(self, gray: np.ndarray, frame: RGBDFrame) -> np.ndarray | None:
+        if len(self._pts) < self.p.min_inliers or self._prev_gray is None:
+            return None
+        lk = dict(winSize=(self.p.klt_window_px, self.p.klt_window_px), maxLevel=self.p.klt_levels,
+                  criteria=(cv2.TERM_CRITERIA_EPS | cv2.TERM_CRITERIA_COUNT, 30, 0.01))
+        p0 = self._pts.reshape(-1, 1, 2)
+        # Constant-velocity prediction of where the tracked landmarks land: KLT starts there, so fast
+        # motion (1 m/s, or a low frame rate) does not exceed the pyramid's capture range.
+        guess = self._predict(self.landmarks[self._ids])
+        flags = 0
+        p1 = None
+        if guess is not None:
+            p1 = guess.reshape(-1, 1, 2).astype(np.float32)
+            flags = cv2.OPTFLOW_USE_INITIAL_FLOW
+        p1, st1, _ = cv2.calcOpticalFlowPyrLK(self._prev_gray, gray, p0, p1, flags=flags, **lk)
+        if p1 is None:
+            return None
+        p0b, st2, _ = cv2.calcOpticalFlowPyrLK(gray, self._prev_gray, p1, None, **lk)
+        fb = np.linalg.norm((p0b - p0).reshape(-1, 2), axis=1)
+        h, w = gray.shape
+        p1 = p1.reshape(-1, 2)
+        good = (st1.ravel() == 1) & (st2.ravel() == 1) & (fb < self.p.klt_fb_max_px)
+        good &= (p1[:, 0] >= 0) & (p1[:, 0] < w - 1) & (p1[:, 1] >= 0) & (p1[:, 1] < h - 1)
+        pts, ids = p1[good], self._ids[good]
+        pose, inl = self._pnp(self.landmarks[ids], pts, self._pose)
+        if pose is None:
+            return None
+        self._pts, self._ids = pts[inl].astype(np.float32), ids[inl]
+        self._pose = pose
+        self._maybe_keyframe(gray, frame, pose)
+        return pose
+
+    def _predict(self, points: np.ndarray) -> np.ndarray | None:
+        """Pixels (N, 2) of odom points under a constant-velocity pose prediction, None if no motion history."""
+        if len(self.poses) < 2 or not np.isfinite(self.poses[-1]).all() or not np.isfinite(self.poses[-2]).all():
+            return None
+        last, prev = self.poses[-1], self.poses[-2]
+        pred = last @ (np.linalg.inv(prev) @ last)
+        rvec, tvec = _rt_from_pose(pred)
+        proj, _ = cv2.projectPoints(points.astype(np.float64), rvec, tvec, self.Kmat, None)
+        pc = (points - pred[:3, 3]) @ pred[:3, :3]
+        proj = proj.reshape(-1, 2)
+        # Keep the plain previous position where the prediction is behind the camera.
+        return np.where((pc[:, 2] > 0.05)[:, None], proj, self._pts)
+
+    def _pnp(self, obj: np.ndarray, img: np.ndarray, guess: np.ndarray | None) -> tuple[np.ndarray | None, np.ndarray]:
+        if len(obj) < max(self.p.min_inliers, 6):
+            return None, np.zeros(0, int)
+        ok, rvec, tvec, inl = cv2.solvePnPRansac(
+            obj.astype(np.float64), img.astype(np.float64), self.Kmat, None,
+            iterationsCount=self.p.pnp_iterations, reprojectionError=self.p.pnp_reprojection_px,
+            confidence=0.999, flags=cv2.SOLVEPNP_AP3P)
+        if not ok or inl is None or len(inl) < self.p.min_inliers:
+            return None, np.zeros(0, int)
+        inl = inl.ravel()
+        rvec, tvec = cv2.solvePnPRefineLM(obj[inl].astype(np.float64), img[inl].astype(np.float64), self.Kmat, None,
+                                          rvec, tvec)
+        # Re-score all matches with the refined pose (RANSAC's minimal-sample inlier set is noisy).
+        proj, _ = cv2.projectPoints(obj.astype(np.float64), rvec, tvec, self.Kmat, None)
+        err = np.linalg.norm(proj.reshape(-1, 2) - img, axis=1)
+        inl = np.flatnonzero(err < self.p.pnp_reprojection_px)
+        if len(inl) < self.p.min_inliers:
+            return None, np.zeros(0, int)
+        return _pose_from_rt(rvec, tvec), inl
+
+    def _maybe_keyframe(self, gray: np.ndarray, frame: RGBDFrame, pose: np.ndarray) -> None:
+        rel = np.linalg.inv(self._kf_pose) @ pose
+        if (np.linalg.norm(rel[:3, 3]) > self.p.keyframe_translation_m
+                or _rotation_deg(rel) > self.p.keyframe_rotation_deg
+                or len(self._pts) < self.p.keyframe_min_tracked):
+            self._make_keyframe(gray, frame, pose)
+
+    def _make_keyframe(self, gray: np.ndarray, frame: RGBDFrame, pose: np.ndarray, first: bool = False) -> bool:
+        depth = frame.depth
+        assert depth is not None
+        # Observations of the live tracks (with depth where valid), then landmark refinement.
+        z_tr = sample_depth(depth, self._pts.astype(np.float64), self.p.depth_edge_m, self.p.depth_sigma_coeff) if len(self._pts) else np.zeros(0)
+        z_tr = np.where(z_tr <= self.p.landmark_depth_max_m, z_tr, 0.0)
+        # New corners away from live tracks.
+        mask = np.full(gray.shape, 255, np.uint8)
+        for u, v in self._pts:
+            cv2.circle(mask, (int(u), int(v)), self.p.corner_min_distance_px, 0, -1)
+        n_new = self.p.max_corners - len(self._pts)
+        new_uv = np.zeros((0, 2), np.float32)
+        if n_new > 0:
+            c = cv2.goodFeaturesToTrack(gray, n_new, self.p.corner_quality, self.p.corner_min_distance_px, mask=mask)
+            if c is not None:
+                new_uv = c.reshape(-1, 2)
+        z_new = sample_depth(depth, new_uv.astype(np.float64), self.p.depth_edge_m, self.p.depth_sigma_coeff) if len(new_uv) else np.zeros(0)
+        keep = (z_new > 0) & (z_new <= self.p.landmark_depth_max_m)
+        new_uv, z_new = new_uv[keep], z_new[keep]
+        if first and len(new_uv) < self.p.min_inliers:
+            return False
+        if len(self._pts):
+            self._refine_landmarks(self._ids, self._pts.astype(np.float64), z_tr, pose)
+        new_ids = self._add_landmarks(new_uv.astype(np.float64), z_new, pose)
+        kf_id = len(self.keyframes)
+        uv_all = np.vstack([self._pts, new_uv]).astype(np.float64)
+        ids_all = np.concatenate([self._ids, new_ids])
+        z_all = np.concatenate([z_tr, z_new])
+        self._obs.append((np.full(len(ids_all), kf_id), ids_all, uv_all, z_all))
+        self._pts = uv_all.astype(np.float32)
+        self._ids = ids_all
+        kps, desc = self.orb.detectAndCompute(gray, None)
+        kp_uv = np.array([k.pt for k in kps], np.float32).reshape(-1, 2)
+        kp_z = sample_depth(depth, kp_uv.astype(np.float64), self.p.depth_edge_m, self.p.depth_sigma_coeff) if len(kp_uv) else np.zeros(0)
+        self.keyframes.append(Keyframe(
+            id=kf_id, frame_index=frame.index, stamp=frame.stamp, T_odom_cam=pose.copy(), keypoints=kp_uv,
+            descriptors=desc if desc is not None else np.zeros((0, 32), np.uint8),
+            keypoint_depth=kp_z.astype(np.float32), keypoint_landmark=np.full(len(kp_uv), -1, np.int64)))
+        self._kf_pose = pose.copy()
+        return True
+
+    def _relocalise(self, gray: np.ndarray, frame: RGBDFrame) -> np.ndarray | None:
+        """Lost: match ORB features of this frame against the last keyframe and solve PnP."""
+        self.lost_frames += 1
+        kf = self.keyframes[-1] if self.keyframes else None
+        if kf is None or len(kf.descriptors) == 0:
+            return None
+        kps, desc = self.orb.detectAndCompute(gray, None)
+        if desc is None or len(kps) < self.p.min_inliers:
+            self.events.append(f"frame {frame.index}: tracking lost (no texture)")
+            self._pts = np.zeros((0, 2), np.float32)
+            self._ids = np.zeros(0, np.int64)
+            return None
+        pairs = self.matcher.knnMatch(kf.descriptors, desc, k=2)
+        good = [m for m, *rest in pairs if rest and m.distance < 0.8 * rest[0].distance]
+        qi = np.array([m.queryIdx for m in good], int)
+        ti = np.array([m.trainIdx for m in good], int)
+        if len(qi):
+            has_z = kf.keypoint_depth[qi] > 0
+            qi, ti = qi[has_z], ti[has_z]
+        pc = backproject(kf.keypoints[qi].astype(np.float64), kf.keypoint_depth[qi].astype(np.float64), self.K)
+        obj = pc @ kf.T_odom_cam[:3, :3].T + kf.T_odom_cam[:3, 3]
+        img = np.array([kps[i].pt for i in ti], np.float64).reshape(-1, 2)
+        pose, inl = self._pnp(obj, img, None)
+        if pose is None:
+            self.events.append(f"frame {frame.index}: tracking lost, relocalisation failed")
+            self._pts = np.zeros((0, 2), np.float32)
+            self._ids = np.zeros(0, np.int64)
+            return None
+        self.events.append(f"frame {frame.index}: relocalised against keyframe {kf.id} ({len(inl)} inliers)")
+        log.info(self.events[-1])
+        self._pose = pose
+        # Restart tracking from fresh landmarks at this frame.
+        self._pts = np.zeros((0, 2), np.float32)
+        self._ids = np.zeros(0, np.int64)
+        self._make_keyframe(gray, frame, pose)
+        return pose
+
+    def result(self) -> FrontEndResult:
+        if self._obs:
+            kf, lm, uv, z = (np.concatenate(x) for x in zip(*self._obs))
+        else:
+            kf, lm, uv, z = np.zeros(0, np.int64), np.zeros(0, np.int64), np.zeros((0, 2)), np.zeros(0)
+        return FrontEndResult(
+            intrinsics=self.K, keyframes=list(self.keyframes), landmarks=self.landmarks,
+            observations=Observations(kf.astype(np.int64), lm.astype(np.int64), uv, z),
+            frame_stamps=np.array(self.stamps), frame_poses=np.array(self.poses).reshape(-1, 4, 4),
+            events=list(self.events))
+
+
+def run_front_end(frames: Iterable[RGBDFrame], intr: CameraIntrinsics,
+                  params: FrontEndParams = FrontEndParams()) -> FrontEndResult:
+    fe = RGBDFrontEnd(intr, params)
+    for frame in frames:
+        fe.track(frame)
+    for e in fe.events:
+        log.warning(e)
+    return fe.result()

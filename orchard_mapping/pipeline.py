@@ -1,0 +1,141 @@
+"""The offline pipeline: bags in, result folder out (docs/results.md). One public `run()`.
+
+Reads as the paper's steps, per side: front end (RGB-D odometry with
+keyframes), loop detection, pose graph, bundle adjustment, TSDF fusion; then
+writes each side's trajectory and cloud.
+"""
+
+from __future__ import annotations
+
+import logging
+import time
+from collections.abc import Callable
+from dataclasses import dataclass, field
+from pathlib import Path
+
+import numpy as np
+
+from orchard_mapping.config import OrchardConfig, dump_yaml
+from orchard_mapping.core.bundle_adjustment import BAResult, bundle_adjust, optimise_pose_graph
+from orchard_mapping.core.geometry import matrix_to_quat
+from orchard_mapping.core.odometry import RGBDFrontEnd
+from orchard_mapping.core.sidemap import FrontEndResult, LoopClosure, SideMap
+from orchard_mapping.core.types import RGBDFrame, StampedTrajectory
+from orchard_mapping.errors import BagFormatError
+from orchard_mapping.io.bags import RGBDSequence, read_rgbd
+from orchard_mapping.io.results import atomic_write_text, write_timings, write_tum
+
+log = logging.getLogger(__name__)
+
+Progress = Callable[[str, int, int], None]
+SIDES = ("front", "back")
+
+
+@dataclass
+class Timings:
+    stages: dict[str, float] = field(default_factory=dict)  # s per stage
+    frames: int = 0
+    recording_duration_s: float = 0.0
+
+    def add(self, stage: str, seconds: float) -> None:
+        self.stages[stage] = self.stages.get(stage, 0.0) + seconds
+
+
+@dataclass(frozen=True)
+class RunResult:
+    out_dir: Path
+    sides: dict[str, SideMap]
+    timings: Timings
+
+
+def open_sides(front: Path, back: Path | None, cfg: OrchardConfig) -> dict[str, RGBDSequence]:
+    """Two bags (front, back), or one bag whose side topic labels the frames."""
+    inp = cfg.input
+    kw = dict(mode=inp.mode, max_pair_dt_s=inp.max_pair_dt_s, depth_min_m=inp.depth_min_m, depth_max_m=inp.depth_max_m)
+    if back is not None:
+        return {"front": read_rgbd(front, inp.topics, **kw), "back": read_rgbd(back, inp.topics, **kw)}
+    seq = read_rgbd(front, inp.topics, **kw)
+    labels = set(seq.sides.tolist()) - {""}
+    if not labels:
+        raise BagFormatError(f"a single bag needs the side topic to tell front from back; no labels found",
+                             bag=str(front), topic=inp.topics.side)
+    return {side: seq for side in SIDES if side in labels}
+
+
+def _frames_of(seq: RGBDSequence, side: str, labelled: bool) -> "Iterator[RGBDFrame]":
+    for f in seq:
+        if not labelled or seq.sides[f.index] == side:
+            yield f
+
+
+def front_end(frames, intr, cfg: OrchardConfig, progress: Progress | None, label: str, n: int) -> FrontEndResult:
+    fe = RGBDFrontEnd(intr, cfg.odometry)
+    for i, frame in enumerate(frames):
+        fe.track(frame)
+        if progress:
+            progress(label, i + 1, n)
+    for event in fe.events:
+        log.warning("%s: %s", label, event)
+    return fe.result()
+
+
+def reconstruct_side(seq: RGBDSequence, side: str, cfg: OrchardConfig, timings: Timings, labelled: bool = False,
+                     progress: Progress | None = None) -> SideMap:
+    """Front end, pose graph, bundle adjustment for one side."""
+    n = int(np.sum(seq.sides == side)) if labelled else len(seq)
+    t0 = time.perf_counter()
+    fe = front_end(_frames_of(seq, side, labelled), seq.intrinsics, cfg, progress, side, n)
+    timings.add(f"front_end_{side}", time.perf_counter() - t0)
+    if len(fe.keyframes) < 2:
+        raise BagFormatError(f"the {side} side could not be reconstructed: {len(fe.keyframes)} keyframe(s) "
+                             f"from {n} frames (too little texture or valid depth)", bag=seq.bag)
+    poses = np.array([k.T_odom_cam for k in fe.keyframes])
+    loops: list[LoopClosure] = []
+    t0 = time.perf_counter()
+    poses = optimise_pose_graph(poses, loops)
+    timings.add(f"pose_graph_{side}", time.perf_counter() - t0)
+    t0 = time.perf_counter()
+    ba: BAResult = bundle_adjust(poses, fe.landmarks, fe.observations, seq.intrinsics, mode=cfg.input.mode,
+                                 loops=loops)
+    timings.add(f"bundle_adjustment_{side}", time.perf_counter() - t0)
+    log.info("%s: %d keyframes, %d landmarks used, BA error %.1f -> %.1f in %d iterations", side,
+             len(fe.keyframes), ba.n_landmarks_used, ba.initial_error, ba.final_error, ba.iterations)
+    return SideMap(
+        side=side, frame_id=getattr(cfg.frames, f"odom_{side}"), intrinsics=seq.intrinsics,
+        keyframe_stamps=np.array([k.stamp for k in fe.keyframes]), keyframe_poses=ba.poses,
+        landmarks=ba.landmarks, observations=fe.observations, loops=loops,
+        cloud_points=np.zeros((0, 3), np.float32), cloud_colors=np.zeros((0, 3), np.uint8),
+        scale_free=cfg.input.mode == "rgb",
+    )
+
+
+def write_side(out: Path, sm: SideMap) -> None:
+    q = np.array([matrix_to_quat(T[:3, :3]) for T in sm.keyframe_poses])
+    write_tum(out / f"trajectory_{sm.side}.tum",
+              StampedTrajectory(sm.keyframe_stamps, sm.keyframe_poses[:, :3, 3], q, sm.frame_id))
+
+
+def run(front: str | Path, back: str | Path | None, out: str | Path, cfg: OrchardConfig,
+        progress: Progress | None = None) -> RunResult:
+    """Reconstruct each side and write the result folder."""
+    out = Path(out)
+    out.mkdir(parents=True, exist_ok=True)
+    atomic_write_text(out / "config.effective.yaml", dump_yaml(cfg))
+    timings = Timings()
+    t0 = time.perf_counter()
+    seqs = open_sides(Path(front), Path(back) if back is not None else None, cfg)
+    timings.add("read_bags", time.perf_counter() - t0)
+    labelled = back is None
+    sides: dict[str, SideMap] = {}
+    for side, seq in seqs.items():
+        timings.frames += int(np.sum(seq.sides == side)) if labelled else len(seq)
+        if labelled:
+            st = seq.stamps[seq.sides == side]
+            timings.recording_duration_s += float(st[-1] - st[0]) if len(st) > 1 else 0.0
+        else:
+            timings.recording_duration_s += seq.duration
+        sides[side] = reconstruct_side(seq, side, cfg, timings, labelled, progress)
+        write_side(out, sides[side])
+    write_timings(out / "timings.json", timings.stages, frames=timings.frames,
+                  recording_duration_s=timings.recording_duration_s)
+    return RunResult(out, sides, timings)
