@@ -13,6 +13,7 @@ from typing import Any, Literal
 import yaml
 from pydantic import BaseModel, ConfigDict, Field, ValidationError
 
+from orchard_mapping.core.bundle_adjustment import BundleAdjustmentParams
 from orchard_mapping.core.odometry import FrontEndParams
 from orchard_mapping.errors import ConfigError
 from orchard_mapping.resources import config_dir
@@ -62,6 +63,7 @@ class OrchardConfig(_Section):
     input: InputConfig = InputConfig()
     frames: FramesConfig = FramesConfig()
     odometry: FrontEndParams = FrontEndParams()
+    ba: BundleAdjustmentParams = BundleAdjustmentParams()
     evaluate: EvaluateConfig = EvaluateConfig()
     seed: int = 0
 

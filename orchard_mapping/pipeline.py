@@ -10,7 +10,7 @@ from __future__ import annotations
 import logging
 import time
 from collections.abc import Callable
-from dataclasses import dataclass, field
+from dataclasses import asdict, dataclass, field
 from pathlib import Path
 
 import numpy as np
@@ -96,7 +96,7 @@ def reconstruct_side(seq: RGBDSequence, side: str, cfg: OrchardConfig, timings: 
     timings.add(f"pose_graph_{side}", time.perf_counter() - t0)
     t0 = time.perf_counter()
     ba: BAResult = bundle_adjust(poses, fe.landmarks, fe.observations, seq.intrinsics, mode=cfg.input.mode,
-                                 loops=loops)
+                                 loops=loops, **asdict(cfg.ba))
     timings.add(f"bundle_adjustment_{side}", time.perf_counter() - t0)
     log.info("%s: %d keyframes, %d landmarks used, BA error %.1f -> %.1f in %d iterations", side,
              len(fe.keyframes), ba.n_landmarks_used, ba.initial_error, ba.final_error, ba.iterations)

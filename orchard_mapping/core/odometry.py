@@ -41,8 +41,9 @@ class FrontEndParams:
     corner_quality: float = 0.003  # relative to the strongest corner (foliage has low contrast)
     corner_min_distance_px: int = 10
     klt_window_px: int = 21
-    klt_levels: int = 3
-    klt_fb_max_px: float = 1.0  # forward-backward consistency
+    klt_levels: int = 2  # the constant-velocity prediction puts KLT near the answer: few levels suffice
+    klt_iterations: int = 20
+    klt_fb_max_px: float = 0.0  # forward-backward consistency check (0 = off: PnP RANSAC rejects outliers)
     pnp_reprojection_px: float = 2.0
     pnp_iterations: int = 100
     min_inliers: int = 25  # fewer PnP inliers: tracking is lost
@@ -180,7 +181,7 @@ class RGBDFrontEnd:
         if len(self._pts) < self.p.min_inliers or self._prev_gray is None:
             return None
         lk = dict(winSize=(self.p.klt_window_px, self.p.klt_window_px), maxLevel=self.p.klt_levels,
-                  criteria=(cv2.TERM_CRITERIA_EPS | cv2.TERM_CRITERIA_COUNT, 30, 0.01))
+                  criteria=(cv2.TERM_CRITERIA_EPS | cv2.TERM_CRITERIA_COUNT, self.p.klt_iterations, 0.01))
         p0 = self._pts.reshape(-1, 1, 2)
         # Constant-velocity prediction of where the tracked landmarks land: KLT starts there, so fast
         # motion (1 m/s, or a low frame rate) does not exceed the pyramid's capture range.
@@ -193,11 +194,13 @@ class RGBDFrontEnd:
         p1, st1, _ = cv2.calcOpticalFlowPyrLK(self._prev_gray, gray, p0, p1, flags=flags, **lk)
         if p1 is None:
             return None
-        p0b, st2, _ = cv2.calcOpticalFlowPyrLK(gray, self._prev_gray, p1, None, **lk)
-        fb = np.linalg.norm((p0b - p0).reshape(-1, 2), axis=1)
+        good = st1.ravel() == 1
+        if self.p.klt_fb_max_px > 0:
+            p0b, st2, _ = cv2.calcOpticalFlowPyrLK(gray, self._prev_gray, p1, None, **lk)
+            fb = np.linalg.norm((p0b - p0).reshape(-1, 2), axis=1)
+            good &= (st2.ravel() == 1) & (fb < self.p.klt_fb_max_px)
         h, w = gray.shape
         p1 = p1.reshape(-1, 2)
-        good = (st1.ravel() == 1) & (st2.ravel() == 1) & (fb < self.p.klt_fb_max_px)
         good &= (p1[:, 0] >= 0) & (p1[:, 0] < w - 1) & (p1[:, 1] >= 0) & (p1[:, 1] < h - 1)
         pts, ids = p1[good], self._ids[good]
         pose, inl = self._pnp(self.landmarks[ids], pts, self._pose)
