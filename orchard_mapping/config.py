@@ -14,6 +14,8 @@ import yaml
 from pydantic import BaseModel, ConfigDict, Field, ValidationError
 
 from orchard_mapping.core.bundle_adjustment import BundleAdjustmentParams
+from orchard_mapping.core.fusion import FusionParams
+from orchard_mapping.core.loop_closure import LoopParams
 from orchard_mapping.core.odometry import FrontEndParams
 from orchard_mapping.errors import ConfigError
 from orchard_mapping.resources import config_dir
@@ -63,7 +65,9 @@ class OrchardConfig(_Section):
     input: InputConfig = InputConfig()
     frames: FramesConfig = FramesConfig()
     odometry: FrontEndParams = FrontEndParams()
+    loop: LoopParams = LoopParams()
     ba: BundleAdjustmentParams = BundleAdjustmentParams()
+    fusion: FusionParams = FusionParams()
     evaluate: EvaluateConfig = EvaluateConfig()
     seed: int = 0
 

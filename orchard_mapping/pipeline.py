@@ -8,7 +8,11 @@ writes each side's trajectory and cloud.
 from __future__ import annotations
 
 import logging
+import os
+import shutil
+import tempfile
 import time
+from collections.abc import Iterator
 from collections.abc import Callable
 from dataclasses import asdict, dataclass, field
 from pathlib import Path
@@ -17,6 +21,7 @@ import numpy as np
 
 from orchard_mapping.config import OrchardConfig, dump_yaml
 from orchard_mapping.core.bundle_adjustment import BAResult, bundle_adjust, optimise_pose_graph
+from orchard_mapping.core.fusion import FusionResult, fuse_side
 from orchard_mapping.core.geometry import matrix_to_quat
 from orchard_mapping.core.odometry import RGBDFrontEnd
 from orchard_mapping.core.sidemap import FrontEndResult, LoopClosure, SideMap
@@ -62,7 +67,7 @@ def open_sides(front: Path, back: Path | None, cfg: OrchardConfig) -> dict[str, 
     return {side: seq for side in SIDES if side in labels}
 
 
-def _frames_of(seq: RGBDSequence, side: str, labelled: bool) -> "Iterator[RGBDFrame]":
+def _frames_of(seq: RGBDSequence, side: str, labelled: bool) -> Iterator[RGBDFrame]:
     for f in seq:
         if not labelled or seq.sides[f.index] == side:
             yield f
@@ -90,9 +95,16 @@ def reconstruct_side(seq: RGBDSequence, side: str, cfg: OrchardConfig, timings: 
         raise BagFormatError(f"the {side} side could not be reconstructed: {len(fe.keyframes)} keyframe(s) "
                              f"from {n} frames (too little texture or valid depth)", bag=seq.bag)
     poses = np.array([k.T_odom_cam for k in fe.keyframes])
+    odometry = poses.copy()
     loops: list[LoopClosure] = []
+    if cfg.loop.enabled and cfg.input.mode == "rgbd":
+        t0 = time.perf_counter()
+        loops = cfg.loop.detector(seq.intrinsics).detect_all(fe.keyframes)
+        timings.add(f"loop_detection_{side}", time.perf_counter() - t0)
+        log.info("%s: %d verified loop closures", side, len(loops))
     t0 = time.perf_counter()
-    poses = optimise_pose_graph(poses, loops)
+    poses = optimise_pose_graph(poses, loops, loop_sigma_rot_deg=cfg.ba.loop_sigma_rot_deg,
+                                loop_sigma_trans_m=cfg.ba.loop_sigma_trans_m)
     timings.add(f"pose_graph_{side}", time.perf_counter() - t0)
     t0 = time.perf_counter()
     ba: BAResult = bundle_adjust(poses, fe.landmarks, fe.observations, seq.intrinsics, mode=cfg.input.mode,
@@ -100,30 +112,88 @@ def reconstruct_side(seq: RGBDSequence, side: str, cfg: OrchardConfig, timings: 
     timings.add(f"bundle_adjustment_{side}", time.perf_counter() - t0)
     log.info("%s: %d keyframes, %d landmarks used, BA error %.1f -> %.1f in %d iterations", side,
              len(fe.keyframes), ba.n_landmarks_used, ba.initial_error, ba.final_error, ba.iterations)
+    points = np.zeros((0, 3), np.float32)
+    colors = np.zeros((0, 3), np.uint8)
+    cleaned: dict[int, np.ndarray] = {}
+    if cfg.input.mode == "rgbd":
+        t0 = time.perf_counter()
+        fused = fuse_keyframes(seq, side, labelled, [k.frame_index for k in fe.keyframes], ba.poses, cfg)
+        points, colors = fused.points, fused.colors
+        cleaned = fused.cleaned_depth  # position among the fused frames = keyframe id (frames come in order)
+        timings.add(f"fusion_{side}", time.perf_counter() - t0)
     return SideMap(
         side=side, frame_id=getattr(cfg.frames, f"odom_{side}"), intrinsics=seq.intrinsics,
         keyframe_stamps=np.array([k.stamp for k in fe.keyframes]), keyframe_poses=ba.poses,
         landmarks=ba.landmarks, observations=fe.observations, loops=loops,
-        cloud_points=np.zeros((0, 3), np.float32), cloud_colors=np.zeros((0, 3), np.uint8),
+        cloud_points=points, cloud_colors=colors,
         scale_free=cfg.input.mode == "rgb",
+        odometry_poses=odometry,
+        cleaned_depth=cleaned,
     )
 
 
+def fuse_keyframes(seq: RGBDSequence, side: str, labelled: bool, frame_index: list[int], poses: np.ndarray,
+                   cfg: OrchardConfig) -> FusionResult:
+    """TSDF fusion of the keyframes' depth with their optimised poses (a second pass over the bag)."""
+    pose_of = dict(zip(frame_index, poses))
+
+    def frames() -> Iterator[tuple[np.ndarray, np.ndarray, np.ndarray]]:
+        for f in _frames_of(seq, side, labelled):
+            if f.index in pose_of and f.depth is not None:
+                yield f.depth, f.color, pose_of[f.index]
+
+    return fuse_side(frames(), seq.intrinsics, keyframes=None, **asdict(cfg.fusion))
+
+
+def write_cloud(path: Path, points: np.ndarray, colors: np.ndarray) -> None:
+    """PLY (binary), written atomically."""
+    import open3d as o3d
+
+    pc = o3d.geometry.PointCloud(o3d.utility.Vector3dVector(points.astype(np.float64)))
+    pc.colors = o3d.utility.Vector3dVector(colors.astype(np.float64) / 255.0)
+    tmp = path.with_name(f".{path.stem}.partial.ply")
+    if not o3d.io.write_point_cloud(str(tmp), pc, write_ascii=False):
+        tmp.unlink(missing_ok=True)
+        raise OSError(f"could not write point cloud {path}")
+    os.replace(tmp, path)
+
+
+def _trajectory(stamps: np.ndarray, poses: np.ndarray, frame_id: str) -> StampedTrajectory:
+    q = np.array([matrix_to_quat(T[:3, :3]) for T in poses])
+    return StampedTrajectory(stamps, poses[:, :3, 3], q, frame_id)
+
+
 def write_side(out: Path, sm: SideMap) -> None:
-    q = np.array([matrix_to_quat(T[:3, :3]) for T in sm.keyframe_poses])
-    write_tum(out / f"trajectory_{sm.side}.tum",
-              StampedTrajectory(sm.keyframe_stamps, sm.keyframe_poses[:, :3, 3], q, sm.frame_id))
+    write_tum(out / f"trajectory_{sm.side}.tum", _trajectory(sm.keyframe_stamps, sm.keyframe_poses, sm.frame_id))
+    # The front end's keyframe poses before loop closure and BA: what the back end improved on.
+    write_tum(out / f"odometry_{sm.side}.tum", _trajectory(sm.keyframe_stamps, sm.odometry_poses, sm.frame_id))
+    if len(sm.cloud_points):
+        write_cloud(out / f"{sm.side}.ply", sm.cloud_points, sm.cloud_colors)
 
 
 def run(front: str | Path, back: str | Path | None, out: str | Path, cfg: OrchardConfig,
         progress: Progress | None = None) -> RunResult:
-    """Reconstruct each side and write the result folder."""
+    """Reconstruct each side and write the result folder.
+
+    Everything is written into a staging folder first and moved into `out` only when the whole run
+    succeeded: a failed run leaves no half-written result (earlier results in `out` stay as they were).
+    """
     out = Path(out)
     out.mkdir(parents=True, exist_ok=True)
-    atomic_write_text(out / "config.effective.yaml", dump_yaml(cfg))
+    stage = Path(tempfile.mkdtemp(prefix=".staging-", dir=out))
+    try:
+        result = _run(Path(front), Path(back) if back is not None else None, stage, cfg, progress)
+        for f in sorted(stage.iterdir()):
+            os.replace(f, out / f.name)
+    finally:
+        shutil.rmtree(stage, ignore_errors=True)
+    return RunResult(out, result.sides, result.timings)
+
+
+def _run(front: Path, back: Path | None, out: Path, cfg: OrchardConfig, progress: Progress | None) -> RunResult:
     timings = Timings()
     t0 = time.perf_counter()
-    seqs = open_sides(Path(front), Path(back) if back is not None else None, cfg)
+    seqs = open_sides(front, back, cfg)
     timings.add("read_bags", time.perf_counter() - t0)
     labelled = back is None
     sides: dict[str, SideMap] = {}
@@ -138,4 +208,5 @@ def run(front: str | Path, back: str | Path | None, out: str | Path, cfg: Orchar
         write_side(out, sides[side])
     write_timings(out / "timings.json", timings.stages, frames=timings.frames,
                   recording_duration_s=timings.recording_duration_s)
+    atomic_write_text(out / "config.effective.yaml", dump_yaml(cfg))
     return RunResult(out, sides, timings)

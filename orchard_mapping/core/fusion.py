@@ -311,6 +311,25 @@ def _nearest_frames(centres: np.ndarray, k: int, n: int) -> np.ndarray:
     return np.sort(order[:n])
 
 
+@dataclass(frozen=True)
+class FusionParams:
+    """Settings of `fuse_side` (config section `fusion`), passed as keywords."""
+
+    __pydantic_config__ = {"extra": "forbid"}  # config files: unknown keys are errors
+
+    mode: Literal["side", "local"] = "side"  # fused depth from the whole side's grid, or the paper's nearest frames
+    neighbours: int = 10  # frames per local grid (mode "local")
+    voxel_size_m: float = DEFAULT_VOXEL_SIZE_M
+    sdf_trunc_m: float = DEFAULT_SDF_TRUNC_M
+    depth_max_m: float = DEFAULT_DEPTH_MAX_M
+    min_weight: float = DEFAULT_MIN_WEIGHT
+    rel_tol: float = DEFAULT_REL_TOL
+    abs_tol_m: float = DEFAULT_ABS_TOL_M
+    silhouette_tol_m: float = DEFAULT_SILHOUETTE_TOL_M
+    float_radius_m: float = DEFAULT_FLOAT_RADIUS_M
+    float_min_neighbours: int = DEFAULT_FLOAT_MIN_NEIGHBOURS
+
+
 def fuse_side(frames: Iterable[tuple[np.ndarray, np.ndarray, np.ndarray]], intr: CameraIntrinsics, *,
               keyframes: Iterable[int] | None = None, neighbours: int = 10, mode: Literal["side", "local"] = "side",
               voxel_size_m: float = DEFAULT_VOXEL_SIZE_M, sdf_trunc_m: float = DEFAULT_SDF_TRUNC_M,

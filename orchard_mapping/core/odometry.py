@@ -25,6 +25,7 @@ from dataclasses import dataclass
 import cv2
 import numpy as np
 
+from orchard_mapping.core.loop_closure import make_keyframe_features
 from orchard_mapping.core.sidemap import FrontEndResult, Keyframe, Observations
 from orchard_mapping.core.types import CameraIntrinsics, RGBDFrame
 
@@ -54,6 +55,7 @@ class FrontEndParams:
     depth_edge_m: float = 0.03  # reject depth within a 3x3 window spanning more than this (+2 % of z)
     depth_sigma_coeff: float = 0.004  # sensor depth sd = coeff * z^2 (m), weights landmark refinement
     orb_features: int = 1000  # per keyframe, for relocalisation and loop detection
+    restart_after_frames: int = 5  # lost this long with texture in view: restart at the extrapolated pose
 
 
 def backproject(uv: np.ndarray, z: np.ndarray, intr: CameraIntrinsics) -> np.ndarray:
@@ -104,7 +106,6 @@ class RGBDFrontEnd:
         self.K = intr
         self.Kmat = intr.K
         self.p = params
-        self.orb = cv2.ORB_create(nfeatures=params.orb_features)
         self.matcher = cv2.BFMatcher(cv2.NORM_HAMMING)
         # Map: landmark positions (odom) with accumulated inverse-variance weights.
         self._lm_sum = np.zeros((0, 3))
@@ -121,6 +122,8 @@ class RGBDFrontEnd:
         self.poses: list[np.ndarray] = []
         self.events: list[str] = []
         self.lost_frames = 0
+        self._lost_streak = 0
+        self._velocity = np.eye(4)  # last inter-frame motion, for extrapolating through lost stretches
 
     # -- map
 
@@ -164,6 +167,13 @@ class RGBDFrontEnd:
             pose = self._track_klt(gray, frame)
             if pose is None:
                 pose = self._relocalise(gray, frame)
+        if pose is not None:
+            good = [p for p in self.poses[-1:] if np.isfinite(p).all()]
+            if good and self._lost_streak == 0:
+                self._velocity = np.linalg.inv(good[0]) @ pose
+            self._lost_streak = 0
+        else:
+            self._lost_streak += 1
         self.stamps.append(frame.stamp)
         self.poses.append(pose if pose is not None else np.full((4, 4), np.nan))
         self._prev_gray = gray
@@ -282,52 +292,62 @@ class RGBDFrontEnd:
         self._obs.append((np.full(len(ids_all), kf_id), ids_all, uv_all, z_all))
         self._pts = uv_all.astype(np.float32)
         self._ids = ids_all
-        kps, desc = self.orb.detectAndCompute(gray, None)
-        kp_uv = np.array([k.pt for k in kps], np.float32).reshape(-1, 2)
-        kp_z = sample_depth(depth, kp_uv.astype(np.float64), self.p.depth_edge_m, self.p.depth_sigma_coeff) if len(kp_uv) else np.zeros(0)
+        kp_uv, desc, kp_z = make_keyframe_features(gray, depth, n_features=self.p.orb_features)
         self.keyframes.append(Keyframe(
             id=kf_id, frame_index=frame.index, stamp=frame.stamp, T_odom_cam=pose.copy(), keypoints=kp_uv,
-            descriptors=desc if desc is not None else np.zeros((0, 32), np.uint8),
-            keypoint_depth=kp_z.astype(np.float32), keypoint_landmark=np.full(len(kp_uv), -1, np.int64)))
+            descriptors=desc, keypoint_depth=kp_z, keypoint_landmark=np.full(len(kp_uv), -1, np.int64)))
         self._kf_pose = pose.copy()
         return True
 
-    def _relocalise(self, gray: np.ndarray, frame: RGBDFrame) -> np.ndarray | None:
-        """Lost: match ORB features of this frame against the last keyframe and solve PnP."""
-        self.lost_frames += 1
-        kf = self.keyframes[-1] if self.keyframes else None
-        if kf is None or len(kf.descriptors) == 0:
-            return None
-        kps, desc = self.orb.detectAndCompute(gray, None)
-        if desc is None or len(kps) < self.p.min_inliers:
-            self.events.append(f"frame {frame.index}: tracking lost (no texture)")
-            self._pts = np.zeros((0, 2), np.float32)
-            self._ids = np.zeros(0, np.int64)
-            return None
-        pairs = self.matcher.knnMatch(kf.descriptors, desc, k=2)
-        good = [m for m, *rest in pairs if rest and m.distance < 0.8 * rest[0].distance]
-        qi = np.array([m.queryIdx for m in good], int)
-        ti = np.array([m.trainIdx for m in good], int)
-        if len(qi):
-            has_z = kf.keypoint_depth[qi] > 0
-            qi, ti = qi[has_z], ti[has_z]
-        pc = backproject(kf.keypoints[qi].astype(np.float64), kf.keypoint_depth[qi].astype(np.float64), self.K)
-        obj = pc @ kf.T_odom_cam[:3, :3].T + kf.T_odom_cam[:3, 3]
-        img = np.array([kps[i].pt for i in ti], np.float64).reshape(-1, 2)
-        pose, inl = self._pnp(obj, img, None)
-        if pose is None:
-            self.events.append(f"frame {frame.index}: tracking lost, relocalisation failed")
-            self._pts = np.zeros((0, 2), np.float32)
-            self._ids = np.zeros(0, np.int64)
-            return None
-        self.events.append(f"frame {frame.index}: relocalised against keyframe {kf.id} ({len(inl)} inliers)")
-        log.info(self.events[-1])
-        self._pose = pose
-        # Restart tracking from fresh landmarks at this frame.
+    def _lose_tracks(self) -> None:
         self._pts = np.zeros((0, 2), np.float32)
         self._ids = np.zeros(0, np.int64)
-        self._make_keyframe(gray, frame, pose)
-        return pose
+
+    def _relocalise(self, gray: np.ndarray, frame: RGBDFrame) -> np.ndarray | None:
+        """Lost: match ORB features of this frame against the latest keyframes and solve PnP.
+
+        If that keeps failing while the frame has texture and depth, restart tracking at the pose
+        extrapolated with the last known motion (the trajectory then has a seam that the log names).
+        """
+        self.lost_frames += 1
+        self._lose_tracks()
+        img_all, desc, _ = make_keyframe_features(gray, None, n_features=self.p.orb_features)
+        if len(img_all) < self.p.min_inliers:
+            self.events.append(f"frame {frame.index}: tracking lost (no texture)")
+            return None
+        img_all = img_all.astype(np.float64)
+        for kf in reversed(self.keyframes[-3:]):
+            if len(kf.descriptors) == 0:
+                continue
+            pairs = self.matcher.knnMatch(kf.descriptors, desc, k=2)
+            good = [m for m, *rest in pairs if rest and m.distance < 0.8 * rest[0].distance]
+            qi = np.array([m.queryIdx for m in good], int)
+            ti = np.array([m.trainIdx for m in good], int)
+            if len(qi):
+                has_z = kf.keypoint_depth[qi] > 0
+                qi, ti = qi[has_z], ti[has_z]
+            pc = backproject(kf.keypoints[qi].astype(np.float64), kf.keypoint_depth[qi].astype(np.float64), self.K)
+            obj = pc @ kf.T_odom_cam[:3, :3].T + kf.T_odom_cam[:3, 3]
+            pose, inl = self._pnp(obj, img_all[ti].reshape(-1, 2), None)
+            if pose is not None:
+                self.events.append(f"frame {frame.index}: relocalised against keyframe {kf.id} ({len(inl)} inliers)")
+                log.info(self.events[-1])
+                self._pose = pose
+                self._make_keyframe(gray, frame, pose)
+                return pose
+        if self._lost_streak + 1 >= self.p.restart_after_frames and self._pose is not None:
+            steps = self._lost_streak + 1
+            pose = self._pose.copy()
+            for _ in range(steps):
+                pose = pose @ self._velocity
+            if self._make_keyframe(gray, frame, pose, first=True):
+                self.events.append(f"frame {frame.index}: tracking restarted at the extrapolated pose after "
+                                   f"{steps} lost frames (a seam in the trajectory)")
+                log.warning(self.events[-1])
+                self._pose = pose
+                return pose
+        self.events.append(f"frame {frame.index}: tracking lost, relocalisation failed")
+        return None
 
     def result(self) -> FrontEndResult:
         if self._obs:
