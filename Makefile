@@ -37,9 +37,13 @@ test: setup
 	if [ $$rc -eq 5 ]; then echo "make test: pytest collected no tests (exit 5)" >&2; fi; \
 	exit $$rc
 
+# The furthest stage that exists: simulate a row, read it back, reconstruct each side, evaluate.
 demo: setup
-	$(VENV)/bin/orchard-map simulate --scenario standard --trees 4 --seed 0 --set camera.rate_hz=6 --out demo_out/sim --force
+	$(VENV)/bin/orchard-map simulate --scenario standard --trees 3 --seed 0 --set camera.rate_hz=10 --out demo_out/sim --force
 	$(VENV)/bin/orchard-map inspect demo_out/sim
+	rm -rf demo_out/result
+	$(VENV)/bin/orchard-map run demo_out/sim/front demo_out/sim/back --out demo_out/result
+	$(VENV)/bin/orchard-map evaluate --truth demo_out/sim/ground_truth.json --result demo_out/result
 
 bench: setup
 	@shopt -s nullglob; files=(benchmarks/*.py); \
