@@ -102,6 +102,8 @@ def _rotation_deg(T: np.ndarray) -> float:
 class RGBDFrontEnd:
     """Incremental RGB-D odometry; feed frames in order with `track`, then `result()`."""
 
+    requires_depth = True  # the colour-only subclass (core/mono_odometry.py) ignores depth
+
     def __init__(self, intr: CameraIntrinsics, params: FrontEndParams = FrontEndParams()) -> None:
         self.K = intr
         self.Kmat = intr.K
@@ -158,7 +160,7 @@ class RGBDFrontEnd:
 
     def track(self, frame: RGBDFrame) -> np.ndarray:
         """Estimate T_odom_cam of `frame` (NaN if it cannot be placed); keyframes are kept internally."""
-        if frame.depth is None:
+        if frame.depth is None and self.requires_depth:
             raise ValueError("RGBDFrontEnd needs depth; use the RGB-only front end for colour-only input")
         gray = cv2.cvtColor(frame.color, cv2.COLOR_RGB2GRAY)
         if self._pose is None:
@@ -221,8 +223,11 @@ class RGBDFrontEnd:
         self._maybe_keyframe(gray, frame, pose)
         return pose
 
-    def _predict(self, points: np.ndarray) -> np.ndarray | None:
-        """Pixels (N, 2) of odom points under a constant-velocity pose prediction, None if no motion history."""
+    def _predict(self, points: np.ndarray, fallback: np.ndarray | None = None) -> np.ndarray | None:
+        """Pixels (N, 2) of odom points under a constant-velocity pose prediction, None if no motion history.
+
+        Where the prediction puts a point behind the camera the pixel is taken from `fallback` (N, 2),
+        by default the live tracks' previous positions."""
         if len(self.poses) < 2 or not np.isfinite(self.poses[-1]).all() or not np.isfinite(self.poses[-2]).all():
             return None
         last, prev = self.poses[-1], self.poses[-2]
@@ -232,7 +237,7 @@ class RGBDFrontEnd:
         pc = (points - pred[:3, 3]) @ pred[:3, :3]
         proj = proj.reshape(-1, 2)
         # Keep the plain previous position where the prediction is behind the camera.
-        return np.where((pc[:, 2] > 0.05)[:, None], proj, self._pts)
+        return np.where((pc[:, 2] > 0.05)[:, None], proj, self._pts if fallback is None else fallback)
 
     def _pnp(self, obj: np.ndarray, img: np.ndarray, guess: np.ndarray | None) -> tuple[np.ndarray | None, np.ndarray]:
         if len(obj) < max(self.p.min_inliers, 6):
@@ -267,16 +272,7 @@ class RGBDFrontEnd:
         # Observations of the live tracks (with depth where valid), then landmark refinement.
         z_tr = sample_depth(depth, self._pts.astype(np.float64), self.p.depth_edge_m, self.p.depth_sigma_coeff) if len(self._pts) else np.zeros(0)
         z_tr = np.where(z_tr <= self.p.landmark_depth_max_m, z_tr, 0.0)
-        # New corners away from live tracks.
-        mask = np.full(gray.shape, 255, np.uint8)
-        for u, v in self._pts:
-            cv2.circle(mask, (int(u), int(v)), self.p.corner_min_distance_px, 0, -1)
-        n_new = self.p.max_corners - len(self._pts)
-        new_uv = np.zeros((0, 2), np.float32)
-        if n_new > 0:
-            c = cv2.goodFeaturesToTrack(gray, n_new, self.p.corner_quality, self.p.corner_min_distance_px, mask=mask)
-            if c is not None:
-                new_uv = c.reshape(-1, 2)
+        new_uv = self._new_corners(gray, self._pts)
         z_new = sample_depth(depth, new_uv.astype(np.float64), self.p.depth_edge_m, self.p.depth_sigma_coeff) if len(new_uv) else np.zeros(0)
         keep = (z_new > 0) & (z_new <= self.p.landmark_depth_max_m)
         new_uv, z_new = new_uv[keep], z_new[keep]
@@ -285,19 +281,37 @@ class RGBDFrontEnd:
         if len(self._pts):
             self._refine_landmarks(self._ids, self._pts.astype(np.float64), z_tr, pose)
         new_ids = self._add_landmarks(new_uv.astype(np.float64), z_new, pose)
-        kf_id = len(self.keyframes)
         uv_all = np.vstack([self._pts, new_uv]).astype(np.float64)
         ids_all = np.concatenate([self._ids, new_ids])
         z_all = np.concatenate([z_tr, z_new])
-        self._obs.append((np.full(len(ids_all), kf_id), ids_all, uv_all, z_all))
         self._pts = uv_all.astype(np.float32)
         self._ids = ids_all
+        self._add_keyframe(gray, depth, frame, pose, ids_all, uv_all, z_all)
+        return True
+
+    def _new_corners(self, gray: np.ndarray, occupied: np.ndarray) -> np.ndarray:
+        """Corners (N, 2) float32 away from the `occupied` pixels (M, 2), up to max_corners - M of them."""
+        mask = np.full(gray.shape, 255, np.uint8)
+        for u, v in occupied:
+            cv2.circle(mask, (int(u), int(v)), self.p.corner_min_distance_px, 0, -1)
+        n_new = self.p.max_corners - len(occupied)
+        new_uv = np.zeros((0, 2), np.float32)
+        if n_new > 0:
+            c = cv2.goodFeaturesToTrack(gray, n_new, self.p.corner_quality, self.p.corner_min_distance_px, mask=mask)
+            if c is not None:
+                new_uv = c.reshape(-1, 2)
+        return new_uv
+
+    def _add_keyframe(self, gray: np.ndarray, depth: np.ndarray | None, frame: RGBDFrame, pose: np.ndarray,
+                      ids: np.ndarray, uv: np.ndarray, z: np.ndarray) -> None:
+        """Append keyframe `pose` with its landmark observations (ids, uv, z) and ORB features."""
+        kf_id = len(self.keyframes)
+        self._obs.append((np.full(len(ids), kf_id), ids, uv, z))
         kp_uv, desc, kp_z = make_keyframe_features(gray, depth, n_features=self.p.orb_features)
         self.keyframes.append(Keyframe(
             id=kf_id, frame_index=frame.index, stamp=frame.stamp, T_odom_cam=pose.copy(), keypoints=kp_uv,
             descriptors=desc, keypoint_depth=kp_z, keypoint_landmark=np.full(len(kp_uv), -1, np.int64)))
         self._kf_pose = pose.copy()
-        return True
 
     def _lose_tracks(self) -> None:
         self._pts = np.zeros((0, 2), np.float32)
@@ -323,12 +337,8 @@ class RGBDFrontEnd:
             good = [m for m, *rest in pairs if rest and m.distance < 0.8 * rest[0].distance]
             qi = np.array([m.queryIdx for m in good], int)
             ti = np.array([m.trainIdx for m in good], int)
-            if len(qi):
-                has_z = kf.keypoint_depth[qi] > 0
-                qi, ti = qi[has_z], ti[has_z]
-            pc = backproject(kf.keypoints[qi].astype(np.float64), kf.keypoint_depth[qi].astype(np.float64), self.K)
-            obj = pc @ kf.T_odom_cam[:3, :3].T + kf.T_odom_cam[:3, 3]
-            pose, inl = self._pnp(obj, img_all[ti].reshape(-1, 2), None)
+            obj, has_point = self._keyframe_points(kf, qi)
+            pose, inl = self._pnp(obj, img_all[ti[has_point]].reshape(-1, 2), None)
             if pose is not None:
                 self.events.append(f"frame {frame.index}: relocalised against keyframe {kf.id} ({len(inl)} inliers)")
                 log.info(self.events[-1])
@@ -348,6 +358,12 @@ class RGBDFrontEnd:
                 return pose
         self.events.append(f"frame {frame.index}: tracking lost, relocalisation failed")
         return None
+
+    def _keyframe_points(self, kf: Keyframe, qi: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """Odom points (n, 3) of keyframe keypoints `qi` (N,) and which of them have one (N,) bool: valid depth."""
+        ok = kf.keypoint_depth[qi] > 0
+        pc = backproject(kf.keypoints[qi[ok]].astype(np.float64), kf.keypoint_depth[qi[ok]].astype(np.float64), self.K)
+        return pc @ kf.T_odom_cam[:3, :3].T + kf.T_odom_cam[:3, 3], ok
 
     def result(self) -> FrontEndResult:
         if self._obs:
