@@ -34,7 +34,8 @@ exposure jitter); per-pair error against the true relative motion, median (max):
   default (10, 5, 3). (6, 3, 2), (20, 10, 5) and a 4th level gave the same error within 0.1 mm.
 - initial guess: the previous pair's motion (constant velocity; same error here as the identity,
   safer for faster motion); `constant_velocity=False` starts from the identity.
-- a pair whose result is non-finite or whose fitness (Open3D's fraction of pixels with a valid
+- a pair that Open3D cannot solve (it raises on a singular system: too few correspondences), whose
+  result is non-finite, or whose fitness (Open3D's fraction of pixels with a valid
   correspondence: 0.2-0.3 on these frames) is below `min_fitness` is replaced by the guess and
   counted in `DenseOdometryResult.failed_pairs`.
 Speed: 150-350 ms per pair here on 2 busy shared cores (MEASURED.md: 47-71 ms on an idle machine).
@@ -152,16 +153,19 @@ def dense_rgbd_odometry_result(
             # source = current frame, target = previous: the result maps current-camera points into the
             # previous camera, i.e. T_prev_cur.
             init = o3c.Tensor(guess, dtype=o3c.float64)
-            if two_stage:
-                init = o3d.t.pipelines.odometry.rgbd_odometry_multi_scale(
-                    cur, prev, K, init, 1.0, float(depth_max_m), criteria, _METHODS["point_to_plane"],
-                    params).transformation
-            res = o3d.t.pipelines.odometry.rgbd_odometry_multi_scale(
-                cur, prev, K, init, 1.0, float(depth_max_m), criteria, _METHODS[method], params)
+            try:
+                if two_stage:
+                    init = o3d.t.pipelines.odometry.rgbd_odometry_multi_scale(
+                        cur, prev, K, init, 1.0, float(depth_max_m), criteria, _METHODS["point_to_plane"],
+                        params).transformation
+                res = o3d.t.pipelines.odometry.rgbd_odometry_multi_scale(
+                    cur, prev, K, init, 1.0, float(depth_max_m), criteria, _METHODS[method], params)
+                T, fit = res.transformation.numpy().astype(np.float64), float(res.fitness)
+            except RuntimeError:  # Open3D: "Singular 6x6 linear system detected, tracking failed."
+                T, fit = np.full((4, 4), np.nan), 0.0
             seconds.append(time.perf_counter() - t0)
-            T = res.transformation.numpy().astype(np.float64)
-            fitness.append(float(res.fitness))
-            if not np.isfinite(T).all() or float(res.fitness) < min_fitness:
+            fitness.append(fit)
+            if not np.isfinite(T).all() or fit < min_fitness:
                 failed.append(k)
                 T = guess
             velocity = T

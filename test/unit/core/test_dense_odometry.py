@@ -125,3 +125,12 @@ def test_bad_input_raises_typed_errors(recording):
         dense_rgbd_odometry(frames[:2], iterations=())
     with pytest.raises(DenseOdometryError, match="photometric_init"):
         dense_rgbd_odometry(frames[:2], method="hybrid", photometric_init="zero")
+
+
+def test_unsolvable_pair_falls_back_to_the_guess(recording):
+    frames, _ = recording
+    blind = replace(frames[1], depth=np.zeros_like(frames[1].depth))  # no valid depth: nothing to align
+    r = dense_rgbd_odometry_result([frames[0], blind, frames[2]])
+    assert r.failed_pairs[:1] == [1]
+    np.testing.assert_allclose(r.poses[1], np.eye(4))  # the guess: constant velocity from rest
+    assert np.isfinite(r.poses).all() and r.pair_seconds.shape == (2,)
