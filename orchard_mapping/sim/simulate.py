@@ -166,8 +166,14 @@ def _atomic_write_text(path: Path, text: str) -> None:
 
 
 def simulate(sc: Scenario, seed: int, out_dir: str | Path, *, force: bool = False,
-             topics: TopicsConfig = TopicsConfig(), progress: Progress | None = None) -> SimulationResult:
-    """Render both sides of a row and write bags, masks and ground truth into out_dir."""
+             topics: TopicsConfig = TopicsConfig(), progress: Progress | None = None,
+             record: tuple[str, ...] = ("front", "back")) -> SimulationResult:
+    """Render both sides of a row and write bags, masks and ground truth into out_dir.
+
+    `record` limits which sides are rendered into bags (tests of one side's reconstruction): the
+    ground truth keeps both sides' paths, and marks the side not recorded (`"recorded": false`; its
+    visibility fields then say nothing).
+    """
     out = Path(out_dir)
     if out.exists() and any(out.iterdir()):
         if not force:
@@ -206,6 +212,8 @@ def simulate(sc: Scenario, seed: int, out_dir: str | Path, *, force: bool = Fals
         for k, side in enumerate(("front", "back")):
             paths[side] = side_path(sc, side, scene.row_x, scene.terrain, path_rng, t0)
             t0 = float(paths[side].stamps[-1]) + SIDE_GAP_S
+            if side not in record:
+                continue
             _record(scene, renderer, sensor, paths[side], out / side, _mask_dir(out, side, sc), sc.masks_every,
                     np.random.default_rng([seed, 2 + k]), acc, topics, side, progress, with_side_topic=False)
             bags[side] = out / side
@@ -230,6 +238,7 @@ def simulate(sc: Scenario, seed: int, out_dir: str | Path, *, force: bool = Fals
             side: {
                 "frame": f"odom_{side}",
                 "bag": "loop" if sc.path.mode == "loop" else side,
+                "recorded": sc.path.mode == "loop" or side in record,
                 "T_world_odom": np.round(T_world_odom[side], 9).tolist(),
                 "path_length_m": round(paths[side].path_length_m, 4),
                 "duration_s": round(float(paths[side].stamps[-1] - paths[side].stamps[0]), 4),
