@@ -74,7 +74,9 @@ def _frames_of(seq: RGBDSequence, side: str, labelled: bool) -> Iterator[RGBDFra
 
 
 def front_end(frames, intr, cfg: OrchardConfig, progress: Progress | None, label: str, n: int) -> FrontEndResult:
-    fe = RGBDFrontEnd(intr, cfg.odometry)
+    from orchard_mapping.core.mono_odometry import RGBFrontEnd  # colour only: landmarks by triangulation, up to scale
+
+    fe = (RGBFrontEnd if cfg.input.mode == "rgb" else RGBDFrontEnd)(intr, cfg.odometry)
     for i, frame in enumerate(frames):
         fe.track(frame)
         if progress:

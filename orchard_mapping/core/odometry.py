@@ -192,28 +192,12 @@ class RGBDFrontEnd:
     def _track_klt(self, gray: np.ndarray, frame: RGBDFrame) -> np.ndarray | None:
         if len(self._pts) < self.p.min_inliers or self._prev_gray is None:
             return None
-        lk = dict(winSize=(self.p.klt_window_px, self.p.klt_window_px), maxLevel=self.p.klt_levels,
-                  criteria=(cv2.TERM_CRITERIA_EPS | cv2.TERM_CRITERIA_COUNT, self.p.klt_iterations, 0.01))
-        p0 = self._pts.reshape(-1, 1, 2)
         # Constant-velocity prediction of where the tracked landmarks land: KLT starts there, so fast
         # motion (1 m/s, or a low frame rate) does not exceed the pyramid's capture range.
-        guess = self._predict(self.landmarks[self._ids])
-        flags = 0
-        p1 = None
-        if guess is not None:
-            p1 = guess.reshape(-1, 1, 2).astype(np.float32)
-            flags = cv2.OPTFLOW_USE_INITIAL_FLOW
-        p1, st1, _ = cv2.calcOpticalFlowPyrLK(self._prev_gray, gray, p0, p1, flags=flags, **lk)
-        if p1 is None:
+        tracked = self._klt(gray, self._pts, self._predict(self.landmarks[self._ids]))
+        if tracked is None:
             return None
-        good = st1.ravel() == 1
-        if self.p.klt_fb_max_px > 0:
-            p0b, st2, _ = cv2.calcOpticalFlowPyrLK(gray, self._prev_gray, p1, None, **lk)
-            fb = np.linalg.norm((p0b - p0).reshape(-1, 2), axis=1)
-            good &= (st2.ravel() == 1) & (fb < self.p.klt_fb_max_px)
-        h, w = gray.shape
-        p1 = p1.reshape(-1, 2)
-        good &= (p1[:, 0] >= 0) & (p1[:, 0] < w - 1) & (p1[:, 1] >= 0) & (p1[:, 1] < h - 1)
+        p1, good = tracked
         pts, ids = p1[good], self._ids[good]
         pose, inl = self._pnp(self.landmarks[ids], pts, self._pose)
         if pose is None:
@@ -222,6 +206,35 @@ class RGBDFrontEnd:
         self._pose = pose
         self._maybe_keyframe(gray, frame, pose)
         return pose
+
+    def _klt(self, gray: np.ndarray, pts: np.ndarray, guess: np.ndarray | None, prev: np.ndarray | None = None,
+             levels: int | None = None) -> tuple[np.ndarray, np.ndarray] | None:
+        """Track pixels pts (N, 2) from image `prev` (default: the previous frame's) into `gray`, starting at
+        `guess` (N, 2) if given, with `levels` pyramid levels (default klt_levels).
+
+        Returns the new positions (N, 2) and which were tracked inside the image (N,) bool; None if KLT failed."""
+        prev = self._prev_gray if prev is None else prev
+        lk = dict(winSize=(self.p.klt_window_px, self.p.klt_window_px),
+                  maxLevel=self.p.klt_levels if levels is None else levels,
+                  criteria=(cv2.TERM_CRITERIA_EPS | cv2.TERM_CRITERIA_COUNT, self.p.klt_iterations, 0.01))
+        p0 = pts.reshape(-1, 1, 2)
+        flags = 0
+        p1 = None
+        if guess is not None:
+            p1 = guess.reshape(-1, 1, 2).astype(np.float32)
+            flags = cv2.OPTFLOW_USE_INITIAL_FLOW
+        p1, st1, _ = cv2.calcOpticalFlowPyrLK(prev, gray, p0, p1, flags=flags, **lk)
+        if p1 is None:
+            return None
+        good = st1.ravel() == 1
+        if self.p.klt_fb_max_px > 0:
+            p0b, st2, _ = cv2.calcOpticalFlowPyrLK(gray, prev, p1, None, **lk)
+            fb = np.linalg.norm((p0b - p0).reshape(-1, 2), axis=1)
+            good &= (st2.ravel() == 1) & (fb < self.p.klt_fb_max_px)
+        h, w = gray.shape
+        p1 = p1.reshape(-1, 2)
+        good &= (p1[:, 0] >= 0) & (p1[:, 0] < w - 1) & (p1[:, 1] >= 0) & (p1[:, 1] < h - 1)
+        return p1, good
 
     def _predict(self, points: np.ndarray, fallback: np.ndarray | None = None) -> np.ndarray | None:
         """Pixels (N, 2) of odom points under a constant-velocity pose prediction, None if no motion history.
