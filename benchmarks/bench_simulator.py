@@ -44,10 +44,8 @@ def bench_simulator(frames: int, trees: int, seed: int, bag_dir: Path) -> tuple[
     scene = build_scene(sc, seed)
     setup["build_scene"] = time.perf_counter() - t
     intr = intrinsics_of(sc)
-    c = sc.camera
     renderer = Renderer(scene, intr, seed)
-    sensor = SensorModel(c.depth_sigma_coeff, c.depth_min_m, c.depth_max_m, c.dropout, c.edge_missing,
-                         c.flying_pixels, c.color_noise_sd, c.exposure_jitter)
+    sensor = SensorModel.from_camera(sc.camera)
     acc = VisibilityAccumulator(scene, intr, sc.trunk.diameter_height_m)
     path = side_path(sc, "front", scene.row_x, scene.terrain, np.random.default_rng([seed, 1]), 1_700_000_000.0)
     n = min(frames + 1, len(path.stamps))

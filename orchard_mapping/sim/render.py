@@ -15,6 +15,7 @@ import numpy as np
 import open3d as o3d
 
 from orchard_mapping.core.types import CameraIntrinsics
+from orchard_mapping.sim.scenario import CameraSpec
 from orchard_mapping.sim.scene import Cls, Scene
 
 _SUN = np.array([0.35, -0.45, 0.82])
@@ -207,6 +208,12 @@ class SensorModel:
     flying_pixels: float
     color_noise_sd: float
     exposure_jitter: float
+
+    @classmethod
+    def from_camera(cls, c: CameraSpec) -> "SensorModel":
+        """The sensor model a scenario's camera section describes."""
+        return cls(c.depth_sigma_coeff, c.depth_min_m, c.depth_max_m, c.dropout, c.edge_missing, c.flying_pixels,
+                   c.color_noise_sd, c.exposure_jitter)
 
     def apply(self, out: RenderOutput, rng: np.random.Generator) -> tuple[np.ndarray, np.ndarray]:
         """Noisy (color uint8 (H, W, 3), depth float32 metres (H, W), 0 = missing)."""

@@ -10,9 +10,7 @@ from __future__ import annotations
 
 import json
 import logging
-import os
 import shutil
-import tempfile
 from collections.abc import Callable
 from dataclasses import dataclass
 from pathlib import Path
@@ -25,6 +23,7 @@ from orchard_mapping.config import TopicsConfig
 from orchard_mapping.core.types import CameraIntrinsics
 from orchard_mapping.errors import ScenarioError
 from orchard_mapping.io.bags import BagWriter
+from orchard_mapping.io.results import atomic_write_text
 from orchard_mapping.sim.render import Renderer, RenderOutput, SensorModel
 from orchard_mapping.sim.scenario import Scenario
 from orchard_mapping.sim.scene import Cls, Scene, build_scene
@@ -152,19 +151,6 @@ def _tree_truth(scene: Scene, acc: dict[str, VisibilityAccumulator], alpha: floa
     return trees
 
 
-def _atomic_write_text(path: Path, text: str) -> None:
-    fd, tmp = tempfile.mkstemp(dir=path.parent, prefix=f".{path.name}.")
-    try:
-        with os.fdopen(fd, "w") as fh:
-            fh.write(text)
-            fh.flush()
-            os.fsync(fh.fileno())
-        os.replace(tmp, path)
-    except BaseException:
-        Path(tmp).unlink(missing_ok=True)
-        raise
-
-
 def simulate(sc: Scenario, seed: int, out_dir: str | Path, *, force: bool = False,
              topics: TopicsConfig = TopicsConfig(), progress: Progress | None = None,
              record: tuple[str, ...] = ("front", "back")) -> SimulationResult:
@@ -185,8 +171,7 @@ def simulate(sc: Scenario, seed: int, out_dir: str | Path, *, force: bool = Fals
     intr = intrinsics_of(sc)
     renderer = Renderer(scene, intr, seed)
     c = sc.camera
-    sensor = SensorModel(c.depth_sigma_coeff, c.depth_min_m, c.depth_max_m, c.dropout, c.edge_missing,
-                         c.flying_pixels, c.color_noise_sd, c.exposure_jitter)
+    sensor = SensorModel.from_camera(c)
     dh = sc.trunk.diameter_height_m
     acc = {side: VisibilityAccumulator(scene, intr, dh) for side in ("front", "back")}
     path_rng = np.random.default_rng([seed, 1])
@@ -250,7 +235,7 @@ def simulate(sc: Scenario, seed: int, out_dir: str | Path, *, force: bool = Fals
         "scenario_config": sc.model_dump(mode="json"),
     }
     truth_path = out / "ground_truth.json"
-    _atomic_write_text(truth_path, json.dumps(truth, indent=1))
+    atomic_write_text(truth_path, json.dumps(truth, indent=1))
     log.info("simulated %s: %s", out, frames)
     return SimulationResult(out, bags, truth_path, frames)
 

@@ -34,9 +34,7 @@ def recording() -> tuple[list[RGBDFrame], np.ndarray]:
     intr = intrinsics_of(sc)
     path = side_path(sc, "front", scene.row_x, scene.terrain, np.random.default_rng(SEED), 0.0)
     renderer = Renderer(scene, intr, SEED)
-    c = sc.camera
-    sensor = SensorModel(c.depth_sigma_coeff, c.depth_min_m, c.depth_max_m, c.dropout, c.edge_missing,
-                         c.flying_pixels, c.color_noise_sd, c.exposure_jitter)
+    sensor = SensorModel.from_camera(sc.camera)
     rng = np.random.default_rng([SEED, 2])
     start = len(path.stamps) // 3
     frames = []

@@ -80,9 +80,7 @@ def row() -> Row:
     scene = build_scene(sc, SEED)
     K = intrinsics_of(sc)
     renderer = Renderer(scene, K, SEED)
-    c = sc.camera
-    sensor = SensorModel(c.depth_sigma_coeff, c.depth_min_m, c.depth_max_m, c.dropout, c.edge_missing,
-                         c.flying_pixels, c.color_noise_sd, c.exposure_jitter)
+    sensor = SensorModel.from_camera(sc.camera)
     path = side_path(sc, "front", scene.row_x, scene.terrain, np.random.default_rng([SEED, 1]), 0.0)
     x, y, z = path.poses[:, 0, 3], path.poses[:, 1, 3], path.poses[:, 2, 3]
     height = z - scene.terrain.height(x, y)  # camera above the ground
