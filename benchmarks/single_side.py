@@ -238,8 +238,8 @@ def _f(v: float | None, digits: int = 2) -> str:
     return "-" if v is None else f"{v:.{digits}f}"
 
 
-def _i(v: int | None) -> str:
-    return "-" if v is None else str(v)
+def _g(v: float | None) -> str:
+    return "-" if v is None else f"{v:.2g}"
 
 
 def case_table(case: dict[str, Any]) -> Table:
@@ -266,30 +266,34 @@ def case_table(case: dict[str, Any]) -> Table:
                       "", _f(bs["pair_ms_median"], 1), "", "", _f(bs["realtime_factor"], 2))
         for m, r in case["ratios"].items():
             rs = r[side]
-            t.add_row("", f"ratio ours / {m}", _f(rs["drift"]), _f(rs["ate"]), "", "", "", "", "", "", "",
+            t.add_row("", f"ratio ours / {m}", _g(rs["drift"]), _g(rs["ate"]), "", "", "", "", "", "", "",
                       style="bold")
         if k < len(SIDES) - 1:
             t.add_section()
     return t
 
 
+SHORT = {"point_to_plane": "p2p", "hybrid": "hybrid", "intensity": "intensity"}
+
+
 def summary_table(cases: list[dict[str, Any]]) -> Table:
-    t = Table(title="Summary: drift % / ATE % per side (ratio ours / baseline; < 1 = ours better)",
-              title_justify="left")
-    for col in ("case", "side", "ours", "ours FE only", *(f"Open3D {m}" for m in cases[0]["baselines"]),
-                *(f"ratio vs {m}" for m in cases[0]["baselines"]), "ms/frame ours/base", "RTF ours"):
+    methods = list(cases[0]["baselines"])
+    t = Table(title="Summary: drift % / ATE % per side; ratio = ours / Open3D (< 1: ours better); "
+                    "ms per frame: ours track / Open3D " + " / ".join(SHORT[m] for m in methods), title_justify="left")
+    for col in ("case", "side", "ours", "ours FE", *(f"O3D {SHORT[m]}" for m in methods),
+                *(f"ratio {SHORT[m]}" for m in methods), "ms/frame", "RTF ours"):
         t.add_column(col, justify="left" if col in ("case", "side") else "right", no_wrap=True)
     for c in cases:
         for side in SIDES:
             s = c["ours"]["sides"][side]
-            base = [c["baselines"][m]["sides"][side] for m in c["baselines"]]
-            rat = [c["ratios"][m][side] for m in c["baselines"]]
+            base = [c["baselines"][m]["sides"][side] for m in methods]
+            rat = [c["ratios"][m][side] for m in methods]
             t.add_row(f"{c['scenario']} {c['trees']}t", side,
                       f"{_f(s['drift_percent'])} / {_f(s['ate_percent'])}",
                       f"{_f(s['odometry']['drift_percent'])} / {_f(s['odometry']['ate_percent'])}",
                       *(f"{_f(b['drift_percent'])} / {_f(b['ate_percent'])}" for b in base),
-                      *(f"{_f(r['drift'])} / {_f(r['ate'])}" for r in rat),
-                      "/".join([_f(s["track_ms_median"], 0)] + [_f(b["pair_ms_median"], 0) for b in base]),
+                      *(f"{_g(r['drift'])} / {_g(r['ate'])}" for r in rat),
+                      " / ".join([_f(s["track_ms_median"], 0)] + [_f(b["pair_ms_median"], 0) for b in base]),
                       _f(s["realtime_factor"], 2))
     return t
 

@@ -6,39 +6,45 @@ chained from the identity: poses are T_odom_cam of the colour optical frame (x r
 z forward) with odom = the first frame's camera. No keyframes, no map, no loop closure: the
 plain dense odometry the feature front end (core/odometry.py) is compared with.
 
-Settings (defaults of `dense_rgbd_odometry`), tuned on 20 consecutive simulated frames (standard
-scenario, 640x480 at 15 Hz, ~4 cm between frames, trunks ~1.25 m away, depth sd ~ 0.004 z^2,
-exposure jitter); per-pair error against the true relative motion, median (max):
-- method "point_to_plane" (default): ICP on the depth vertex/normal maps. 1.3 (2.4) mm,
-  0.06 (0.10) deg per pair; on 5 other pairs of the same row 3.5 (4.6) mm, 0.13 (0.19) deg: it
-  under-estimates the motion along the row by ~10 % (trunks, ground and leaves are mostly planes
-  parallel to the motion, which only their edges constrain).
-- "hybrid" adds the photometric term, "intensity" uses it alone. Started from the
-  constant-velocity guess, hybrid reached 0.4 mm / 0.01 deg on most pairs but diverged on the first
-  pairs of a sequence (40-100 mm, up to 5.8 deg, fitness falling from ~0.2 to < 0.1): the
-  photometric basin is narrower than a 4 cm step. So by default (`photometric_init=
-  "point_to_plane"`) each pair runs point-to-plane first and the photometric method from its
-  result: 0.4 (1.0) mm, 0.012 (0.05) deg on the first 20 frames and 0.46 (0.8) mm on the other 5,
-  at twice the time per pair. Exposure changes (simulated gain sd 4 %) did not cause the failures;
-  normalising each frame's brightness made hybrid worse, so colour is only scaled to [0, 1].
+Settings (defaults of `dense_rgbd_odometry`), tuned on the simulator's camera (640x480 at 15 Hz,
+depth sd ~ 0.004 z^2: 6 mm at the trunks 1.25 m away, 3.6 cm at 3 m, 6.4 cm at 4 m; colour gain
+jitter 4 %) over whole sides of a 2-tree standard row (247 frames each: level sweep 1.25 m from
+the trunks, then the raised sweep 3 m up, tilted 35 deg down, most depth 2-4.5 m away). Numbers:
+drift % / ATE % of the path, front / back side, and the median per-pair error.
+
 - depth is float32 metres: depth_scale 1.0 (Open3D's default 1000 is for 16-bit millimetres).
   Missing depth (0) is invalid to Open3D (ClipTransform maps values <= 0 to NaN).
-- depth_max_m 3.0: beyond 3 m the noise sd exceeds 3.6 cm and the neighbouring rows (~4.6 m) show.
-  4 m was slightly better on these frames (1.1 mm), 5 m much worse (6.6 mm): the far, noisy rows
-  then dominate the normals. The fusion uses the same 3 m.
-- depth_diff_m 0.03 (Open3D's `depth_outlier_trunc`, largest point-to-point distance of a
-  correspondence; ~5 noise sd at the trunks) with a 0.02 m depth Huber delta: Open3D's defaults
-  (0.07 / 0.05) were 2.4x worse (3.1 mm, 0.16 deg per pair); 0.02 / 0.01 let single pairs fail
-  (12 mm, 0.6 deg). The Huber delta must stay below depth_diff_m (Open3D warns otherwise).
+- method "point_to_plane" (default): ICP on the depth vertex/normal maps, the fastest. It slides:
+  trunks, ground and leaves are mostly surfaces parallel to the motion along the row, which only
+  their edges constrain (it under-estimated the step along the row by 5-10 % on the level sweep). Its defaults are
+  depth_max_m 5.0, depth_diff_m 0.07, depth Huber delta 0.05 (Open3D's): 4.4 / 1.0 and
+  5.4 / 1.5 %, 2 mm per pair. With 3 m / 0.03 m (good on the level sweep alone, 1.3 mm per pair) the
+  raised sweep has too little depth within range: 15 % of the pairs failed, 18 / 50 % drift; with
+  4 m / 0.05 m 16 / 17 %; 6 m / 0.10 m was no better than 5 m (4.7 / 4.3 %).
+- "hybrid" adds the photometric term (Open3D's Hybrid), "intensity" uses it alone. Their defaults:
+  depth_max_m 4.0, depth_diff_m 0.05, Huber 0.03: hybrid 0.19 / 0.07 and 0.34 / 0.14 %, 0.5-0.7 mm
+  per pair; at 5 m / 0.07 m 0.9 / 1.1 % drift, at 3 m / 0.03 m 4.4 / 12.7 %. Started from the
+  constant-velocity guess, hybrid diverged on the first pairs of a sequence (40-100 mm, fitness
+  falling below 0.1): the photometric basin is narrower than a 4 cm step. So by default
+  (`photometric_init="point_to_plane"`) each pair runs point-to-plane first (same settings) and
+  the photometric method from its result, at about twice the time per pair. Exposure changes did
+  not cause the failures; normalising each frame's brightness made hybrid worse, so colour is only
+  scaled to [0, 1] (the intensity Huber delta 0.1 is in those units).
+- depth_diff_m is Open3D's `depth_outlier_trunc`, the largest point-to-point distance of a
+  correspondence, and must exceed the depth Huber delta (Open3D warns otherwise); it has to grow
+  with depth_max_m, as the noise does.
 - iterations per pyramid level, coarsest first (3 levels: 1/4, 1/2, full resolution): Open3D's
-  default (10, 5, 3). (6, 3, 2), (20, 10, 5) and a 4th level gave the same error within 0.1 mm.
-- initial guess: the previous pair's motion (constant velocity; same error here as the identity,
-  safer for faster motion); `constant_velocity=False` starts from the identity.
+  default (10, 5, 3); (6, 3, 2), (20, 10, 5) and a 4th level gave the same error within 0.1 mm.
+- initial guess: the previous pair's motion (constant velocity); `constant_velocity=False` starts
+  from the identity (same error on the level sweep; more failed pairs on the raised sweep).
 - a pair that Open3D cannot solve (it raises on a singular system: too few correspondences), whose
-  result is non-finite, or whose fitness (Open3D's fraction of pixels with a valid
-  correspondence: 0.2-0.3 on these frames) is below `min_fitness` is replaced by the guess and
-  counted in `DenseOdometryResult.failed_pairs`.
-Speed: 150-350 ms per pair here on 2 busy shared cores (MEASURED.md: 47-71 ms on an idle machine).
+  result is non-finite, or whose fitness (Open3D's fraction of pixels with a valid correspondence:
+  0.2-0.3 on the level sweep) is below `min_fitness` is replaced by the guess and counted in
+  `DenseOdometryResult.failed_pairs`; so is a pair moving faster than a hand-held camera can
+  (max_speed_mps 3 m/s, max_turn_dps 180 deg/s, from the stamps): a diverged pair accepted once
+  would otherwise seed the next pair's constant-velocity guess and diverge the rest.
+Speed: point-to-plane 120-240 ms per pair, hybrid 270-450 ms here on 2 busy shared cores
+(MEASURED.md: point-to-plane 47-71 ms on an idle machine).
 """
 
 from __future__ import annotations
@@ -55,7 +61,7 @@ import open3d.core as o3c
 from orchard_mapping.core.types import CameraIntrinsics, RGBDFrame
 from orchard_mapping.errors import OrchardMappingError
 
-__all__ = ["DenseOdometryError", "DenseOdometryResult", "dense_rgbd_odometry", "dense_rgbd_odometry_result"]
+__all__ = ["DEFAULT_DEPTH_SETTINGS", "DenseOdometryError", "DenseOdometryResult", "dense_rgbd_odometry", "dense_rgbd_odometry_result"]
 
 Method = Literal["point_to_plane", "hybrid", "intensity"]
 
@@ -65,6 +71,12 @@ _METHODS = {
     "intensity": o3d.t.pipelines.odometry.Method.Intensity,
 }
 _CPU = o3c.Device("CPU:0")
+# Per method: (depth_max_m, depth_diff_m, depth_huber_delta_m); see the module notes.
+DEFAULT_DEPTH_SETTINGS: dict[str, tuple[float, float, float]] = {
+    "point_to_plane": (5.0, 0.07, 0.05),
+    "hybrid": (4.0, 0.05, 0.03),
+    "intensity": (4.0, 0.05, 0.03),
+}
 
 
 class DenseOdometryError(OrchardMappingError):
@@ -98,6 +110,10 @@ def _check_frame(frame: RGBDFrame, intr: CameraIntrinsics | None, k: int) -> Non
         raise DenseOdometryError(f"frame {k}: intrinsics changed within the sequence")
 
 
+def _angle_deg(T: np.ndarray) -> float:
+    return float(np.degrees(np.arccos(np.clip((np.trace(T[:3, :3]) - 1.0) / 2.0, -1.0, 1.0))))
+
+
 def _rgbd(frame: RGBDFrame) -> o3d.t.geometry.RGBDImage:
     depth = np.nan_to_num(np.asarray(frame.depth, np.float32), nan=0.0, posinf=0.0, neginf=0.0)
     rgb = np.ascontiguousarray(frame.color, dtype=np.float32) / np.float32(255.0)  # [0, 1] for the Huber delta
@@ -109,20 +125,31 @@ def dense_rgbd_odometry_result(
     frames: Iterable[RGBDFrame],
     *,
     method: Method = "point_to_plane",
-    depth_max_m: float = 3.0,
-    depth_diff_m: float = 0.03,
-    depth_huber_delta_m: float = 0.02,
+    depth_max_m: float | None = None,
+    depth_diff_m: float | None = None,
+    depth_huber_delta_m: float | None = None,
     intensity_huber_delta: float = 0.1,
     iterations: Sequence[int] = (10, 5, 3),
     constant_velocity: bool = True,
     photometric_init: Literal["point_to_plane", "guess"] = "point_to_plane",
     min_fitness: float = 0.05,
+    max_speed_mps: float = 3.0,
+    max_turn_dps: float = 180.0,
 ) -> DenseOdometryResult:
-    """Frame-to-frame dense odometry with timings and per-pair fitness (see the module notes)."""
+    """Frame-to-frame dense odometry with timings and per-pair fitness (see the module notes).
+
+    depth_max_m, depth_diff_m, depth_huber_delta_m: None = the method's DEFAULT_DEPTH_SETTINGS.
+    """
     if method not in _METHODS:
         raise DenseOdometryError(f"method must be one of {sorted(_METHODS)}, got {method!r}")
+    d_max, d_diff, d_huber = DEFAULT_DEPTH_SETTINGS[method]
+    depth_max_m = d_max if depth_max_m is None else depth_max_m
+    depth_diff_m = d_diff if depth_diff_m is None else depth_diff_m
+    depth_huber_delta_m = d_huber if depth_huber_delta_m is None else depth_huber_delta_m
     if not (depth_max_m > 0 and depth_diff_m > 0 and depth_huber_delta_m > 0 and intensity_huber_delta > 0):
         raise DenseOdometryError("depth_max_m, depth_diff_m and the Huber deltas must be > 0")
+    if not (max_speed_mps > 0 and max_turn_dps > 0):
+        raise DenseOdometryError("max_speed_mps and max_turn_dps must be > 0")
     if len(iterations) == 0 or any(int(i) < 1 for i in iterations):
         raise DenseOdometryError(f"iterations must be >= 1 per pyramid level, got {tuple(iterations)}")
     if photometric_init not in ("point_to_plane", "guess"):
@@ -165,7 +192,9 @@ def dense_rgbd_odometry_result(
                 T, fit = np.full((4, 4), np.nan), 0.0
             seconds.append(time.perf_counter() - t0)
             fitness.append(fit)
-            if not np.isfinite(T).all() or fit < min_fitness:
+            dt = max(float(frame.stamp) - stamps[-1], 1e-3)
+            if (not np.isfinite(T).all() or fit < min_fitness or np.linalg.norm(T[:3, 3]) > max_speed_mps * dt
+                    or _angle_deg(T) > max_turn_dps * dt):
                 failed.append(k)
                 T = guess
             velocity = T
@@ -182,8 +211,9 @@ def dense_rgbd_odometry(frames: Iterable[RGBDFrame], **kwargs) -> tuple[np.ndarr
     """(stamps (N,) s, poses (N, 4, 4) T_odom_cam) by chaining Open3D's dense RGB-D odometry frame to frame.
 
     Keyword arguments as `dense_rgbd_odometry_result`: method ("point_to_plane" | "hybrid" |
-    "intensity"), depth_max_m, depth_diff_m, depth_huber_delta_m, intensity_huber_delta,
-    iterations (per pyramid level, coarsest first), constant_velocity, photometric_init, min_fitness.
+    "intensity"), depth_max_m, depth_diff_m (None: per method), depth_huber_delta_m, intensity_huber_delta,
+    iterations (per pyramid level, coarsest first), constant_velocity, photometric_init, min_fitness,
+    max_speed_mps, max_turn_dps.
     Raises DenseOdometryError on unusable input (no depth, wrong dtype/shape, no frames).
     """
     r = dense_rgbd_odometry_result(frames, **kwargs)
