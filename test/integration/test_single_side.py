@@ -96,23 +96,21 @@ def test_wind_side_within_goals(wind_front):
     assert len(sm.cloud_points) > 10000 and len(sm.cleaned_depth) == len(sm.keyframe_stamps)
 
 
-def test_loop_closures_accepted_are_true(reconstructed, wind_front):
-    """Every verified loop's relative pose agrees with the truth (a wrong loop would be metres off)."""
-    checked = 0
-    for sim, sms in ((reconstructed[0], None), (wind_front[0], [wind_front[1]])):
-        if sms is None:
-            continue
-        for sm in sms:
-            true = _true_trajectory(sim, sm.side)
-            T_true = {round(float(t), 6): T for t, T in zip(true.stamps, _poses(true))}
-            for loop in sm.loops:
-                Ta = T_true[round(float(sm.keyframe_stamps[loop.kf_a]), 6)]
-                Tb = T_true[round(float(sm.keyframe_stamps[loop.kf_b]), 6)]
-                rel = np.linalg.inv(Ta) @ Tb
-                assert np.linalg.norm(rel[:3, 3] - loop.T_a_b[:3, 3]) < 0.03
-                checked += 1
-    # The default path's two sweeps rarely verify (different height and tilt); zero loops is allowed.
-    assert checked >= 0
+def test_loop_closures_accepted_are_true(wind_front):
+    """Every verified loop's relative pose agrees with the truth (a wrong loop would be metres off).
+
+    The default path's two sweeps rarely verify (different height and tilt), so this may check few loops;
+    the planted wrong candidate is rejected in test/unit/core/test_loop_closure.py.
+    """
+    sim, sm = wind_front
+    true = _true_trajectory(sim, sm.side)
+    T_true = {round(float(t), 6): T for t, T in zip(true.stamps, _poses(true))}
+    for loop in sm.loops:
+        Ta = T_true[round(float(sm.keyframe_stamps[loop.kf_a]), 6)]
+        Tb = T_true[round(float(sm.keyframe_stamps[loop.kf_b]), 6)]
+        rel = np.linalg.inv(Ta) @ Tb
+        assert np.linalg.norm(rel[:3, 3] - loop.T_a_b[:3, 3]) < 0.03, loop
+        assert loop.inliers >= load_config().loop.min_inliers
 
 
 def _poses(traj: StampedTrajectory) -> np.ndarray:
