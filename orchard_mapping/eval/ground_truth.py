@@ -8,7 +8,6 @@ odom_<side> for trajectories).
 
 from __future__ import annotations
 
-import json
 import math
 from collections.abc import Mapping
 from dataclasses import dataclass, field
@@ -19,6 +18,7 @@ import numpy as np
 
 from orchard_mapping.core.types import StampedTrajectory
 from orchard_mapping.errors import GroundTruthError
+from orchard_mapping.io.results import load_json
 
 __all__ = [
     "GROUND_TRUTH_SCHEMA",
@@ -232,12 +232,5 @@ def parse_ground_truth(doc: Any, path: str | Path = "<ground truth>") -> GroundT
 def load_ground_truth(path: str | Path) -> GroundTruth:
     """Read and validate ground_truth.json."""
     path = Path(path)
-    try:
-        doc = json.loads(path.read_text(encoding="utf-8"))
-    except FileNotFoundError as err:
-        raise GroundTruthError(f"{path}: ground-truth file not found") from err
-    except (OSError, UnicodeDecodeError) as err:
-        raise GroundTruthError(f"{path}: cannot read: {err}") from err
-    except json.JSONDecodeError as err:
-        raise GroundTruthError(f"{path}: not valid JSON: {err}") from err
+    doc = load_json(path, GroundTruthError, "ground-truth file")
     return parse_ground_truth(doc, path)

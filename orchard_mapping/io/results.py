@@ -40,6 +40,7 @@ __all__ = [
     "Timings",
     "atomic_write_json",
     "atomic_write_text",
+    "load_json",
     "read_side_merge",
     "read_timings",
     "read_trees",
@@ -146,15 +147,16 @@ def atomic_write_json(path: str | Path, obj: Any) -> Path:
     return atomic_write_text(path, _dumps(obj, path))
 
 
-def _load_json(path: Path) -> Any:
+def load_json(path: Path, error: type[Exception] = ResultFormatError, what: str = "file") -> Any:
+    """The JSON document at path; a missing, unreadable or malformed file raises `error` naming the path."""
     try:
         return json.loads(path.read_text(encoding="utf-8"))
     except FileNotFoundError as err:
-        raise ResultFormatError(f"{path}: file not found") from err
+        raise error(f"{path}: {what} not found") from err
     except (OSError, UnicodeDecodeError) as err:
-        raise ResultFormatError(f"{path}: cannot read: {err}") from err
+        raise error(f"{path}: cannot read: {err}") from err
     except json.JSONDecodeError as err:
-        raise ResultFormatError(f"{path}: not valid JSON: {err}") from err
+        raise error(f"{path}: not valid JSON: {err}") from err
 
 
 # ---------------------------------------------------------------- validation helpers
@@ -344,7 +346,7 @@ def read_trees(path: str | Path) -> list[ResultTree]:
     path = Path(path)
     if path.is_dir():
         path = path / TREES_JSON
-    return _trees_from_document(_load_json(path), path)
+    return _trees_from_document(load_json(path), path)
 
 
 def read_trees_csv(path: str | Path) -> list[ResultTree]:
@@ -508,7 +510,7 @@ def read_side_merge(path: str | Path) -> SideMerge:
     path = Path(path)
     if path.is_dir():
         path = path / SIDE_MERGE_JSON
-    d = _mapping(_load_json(path), path, "")
+    d = _mapping(load_json(path), path, "")
     T = _array(_get(d, "T_front_back", path, ""), (4, 4), path, "T_front_back")
     s_matrix = _similarity_scale(T, path, "T_front_back")
     s = _number(d.get("scale", s_matrix), path, "scale", minimum=0.0)
@@ -571,4 +573,4 @@ def read_timings(path: str | Path) -> Timings:
     path = Path(path)
     if path.is_dir():
         path = path / TIMINGS_JSON
-    return _timings_from_document(_load_json(path), path)
+    return _timings_from_document(load_json(path), path)
