@@ -62,6 +62,33 @@ def intrinsics_of(sc: Scenario) -> CameraIntrinsics:
     return CameraIntrinsics(c.width, c.height, c.fx, c.fy, c.cx, c.cy)
 
 
+@dataclass(frozen=True)
+class Rig:
+    """A scenario's scene with the camera that films it: what recording and tests share."""
+
+    scene: Scene
+    intrinsics: CameraIntrinsics
+    renderer: Renderer
+    sensor: SensorModel
+
+    @staticmethod
+    def build(sc: Scenario, seed: int) -> "Rig":
+        scene = build_scene(sc, seed)
+        intr = intrinsics_of(sc)
+        return Rig(scene, intr, Renderer(scene, intr, seed), SensorModel.from_camera(sc.camera))
+
+    def path(self, side: str, rng: np.random.Generator, t0: float = 0.0) -> CameraPath:
+        """The scenario's camera path past `side` of the row (hand-held jitter drawn from rng)."""
+        return side_path(self.scene.scenario, side, self.scene.row_x, self.scene.terrain, rng, t0)
+
+    def shoot(self, T_world_cam: np.ndarray, rng: np.random.Generator, t: float = 0.0
+              ) -> tuple[np.ndarray, np.ndarray, RenderOutput]:
+        """(colour (H, W, 3) uint8, noisy depth (H, W) float32 m, the noise-free render) from a pose at time t."""
+        out = self.renderer.render(T_world_cam, t)
+        color, depth = self.sensor.apply(out, rng)
+        return color, depth, out
+
+
 def instance_mask(out: RenderOutput) -> np.ndarray:
     """(H, W) uint16: 0 background, 1 + tree id trunk, 10000 + fruit index, 60000 + post index."""
     m = np.zeros(out.cls.shape, np.uint16)
@@ -167,11 +194,9 @@ def simulate(sc: Scenario, seed: int, out_dir: str | Path, *, force: bool = Fals
         shutil.rmtree(out)
     out.mkdir(parents=True, exist_ok=True)
 
-    scene = build_scene(sc, seed)
-    intr = intrinsics_of(sc)
-    renderer = Renderer(scene, intr, seed)
+    rig = Rig.build(sc, seed)
+    scene, intr, renderer, sensor = rig.scene, rig.intrinsics, rig.renderer, rig.sensor
     c = sc.camera
-    sensor = SensorModel.from_camera(c)
     dh = sc.trunk.diameter_height_m
     acc = {side: VisibilityAccumulator(scene, intr, dh) for side in ("front", "back")}
     path_rng = np.random.default_rng([seed, 1])
@@ -180,7 +205,7 @@ def simulate(sc: Scenario, seed: int, out_dir: str | Path, *, force: bool = Fals
     bags: dict[str, Path] = {}
     frames: dict[str, int] = {}
     if sc.path.mode == "loop":
-        loop = side_path(sc, "front", scene.row_x, scene.terrain, path_rng, T0_FRONT)
+        loop = rig.path("front", path_rng, T0_FRONT)
         mask_dir = _mask_dir(out, "loop", sc)
         _record(scene, renderer, sensor, loop, out / "loop", mask_dir, sc.masks_every,
                 np.random.default_rng([seed, 2]), acc, topics, "loop", progress, with_side_topic=True)
@@ -195,7 +220,7 @@ def simulate(sc: Scenario, seed: int, out_dir: str | Path, *, force: bool = Fals
     else:
         t0 = T0_FRONT
         for k, side in enumerate(("front", "back")):
-            paths[side] = side_path(sc, side, scene.row_x, scene.terrain, path_rng, t0)
+            paths[side] = rig.path(side, path_rng, t0)
             t0 = float(paths[side].stamps[-1]) + SIDE_GAP_S
             if side not in record:
                 continue

@@ -16,11 +16,8 @@ from orchard_mapping.core.dense_odometry import DenseOdometryError, dense_rgbd_o
 from orchard_mapping.core.geometry import rotation_angle_deg
 from orchard_mapping.core.types import RGBDFrame
 from orchard_mapping.errors import OrchardMappingError
-from orchard_mapping.sim.render import Renderer, SensorModel
 from orchard_mapping.sim.scenario import load_scenario
-from orchard_mapping.sim.scene import build_scene
-from orchard_mapping.sim.simulate import intrinsics_of
-from orchard_mapping.sim.trajectory import side_path
+from orchard_mapping.sim.simulate import Rig
 
 SEED = 11
 N_FRAMES = 6
@@ -30,17 +27,15 @@ N_FRAMES = 6
 def recording() -> tuple[list[RGBDFrame], np.ndarray]:
     """(frames, true T_world_cam (N, 4, 4)) from the middle of the level sweep, where trees fill the view."""
     sc = load_scenario("standard", {"row.n_trees": 2, "camera.rate_hz": 15})
-    scene = build_scene(sc, SEED)
-    intr = intrinsics_of(sc)
-    path = side_path(sc, "front", scene.row_x, scene.terrain, np.random.default_rng(SEED), 0.0)
-    renderer = Renderer(scene, intr, SEED)
-    sensor = SensorModel.from_camera(sc.camera)
+    rig = Rig.build(sc, SEED)
+    intr = rig.intrinsics
+    path = rig.path("front", np.random.default_rng(SEED))
     rng = np.random.default_rng([SEED, 2])
     start = len(path.stamps) // 3
     frames = []
     for k in range(start, start + N_FRAMES):
         t = float(path.stamps[k])
-        color, depth = sensor.apply(renderer.render(path.poses[k], t), rng)
+        color, depth, _ = rig.shoot(path.poses[k], rng, t)
         frames.append(RGBDFrame(t, color, depth, intr, "front", k))
     return frames, path.poses[start:start + N_FRAMES]
 

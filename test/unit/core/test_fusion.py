@@ -28,11 +28,8 @@ from orchard_mapping.core.fusion import (
 )
 from orchard_mapping.core.types import CameraIntrinsics
 from orchard_mapping.errors import OrchardMappingError
-from orchard_mapping.sim.render import Renderer, SensorModel
 from orchard_mapping.sim.scenario import load_scenario
-from orchard_mapping.sim.scene import build_scene
-from orchard_mapping.sim.simulate import intrinsics_of
-from orchard_mapping.sim.trajectory import side_path
+from orchard_mapping.sim.simulate import Rig
 
 SEED = 5
 HALF_RES = {"camera.width": 320, "camera.height": 240, "camera.fx": 307.5, "camera.fy": 307.5,
@@ -78,16 +75,13 @@ def side_fusion(row) -> TsdfFusion:
 def row() -> Row:
     sc = load_scenario("standard", {"row.n_trees": 3, "path.mode": "single_pass", "camera.rate_hz": 6.0,
                                     "path.speed_mps": 1.0, **HALF_RES})
-    scene = build_scene(sc, SEED)
-    intr = intrinsics_of(sc)
-    path = side_path(sc, "front", scene.row_x, scene.terrain, np.random.default_rng(SEED), 0.0)
-    renderer = Renderer(scene, intr, SEED)
-    sensor = SensorModel.from_camera(sc.camera)
+    rig = Rig.build(sc, SEED)
+    scene, intr = rig.scene, rig.intrinsics
+    path = rig.path("front", np.random.default_rng(SEED))
     rng = np.random.default_rng([SEED, 2])
     noisy, truth = [], []
     for T in path.poses:
-        out = renderer.render(T)
-        color, depth = sensor.apply(out, rng)
+        color, depth, out = rig.shoot(T, rng)
         noisy.append((depth, color))
         truth.append(out.depth)
     T_world_odom = path.poses[0]

@@ -70,18 +70,13 @@ def keyframe(kf_id: int, stamp: float, T: np.ndarray, gray: np.ndarray,
 
 @pytest.fixture(scope="module")
 def row() -> Row:
-    from orchard_mapping.sim.render import Renderer, SensorModel
     from orchard_mapping.sim.scenario import load_scenario
-    from orchard_mapping.sim.scene import build_scene
-    from orchard_mapping.sim.simulate import intrinsics_of
-    from orchard_mapping.sim.trajectory import side_path
+    from orchard_mapping.sim.simulate import Rig
 
     sc = load_scenario("standard", {"row.n_trees": 4})
-    scene = build_scene(sc, SEED)
-    K = intrinsics_of(sc)
-    renderer = Renderer(scene, K, SEED)
-    sensor = SensorModel.from_camera(sc.camera)
-    path = side_path(sc, "front", scene.row_x, scene.terrain, np.random.default_rng([SEED, 1]), 0.0)
+    rig = Rig.build(sc, SEED)
+    scene, K = rig.scene, rig.intrinsics
+    path = rig.path("front", np.random.default_rng([SEED, 1]))
     x, y, z = path.poses[:, 0, 3], path.poses[:, 1, 3], path.poses[:, 2, 3]
     height = z - scene.terrain.height(x, y)  # camera above the ground
     level = np.flatnonzero(height < 1.5 * sc.path.low_height_m)
@@ -114,8 +109,7 @@ def row() -> Row:
     rng = np.random.default_rng([SEED, 2])
     kfs, depth_true, feature_s = {}, {}, {}
     for kf_id, (stamp, T) in views.items():
-        out = renderer.render(T)
-        color, depth = sensor.apply(out, rng)
+        color, depth, out = rig.shoot(T, rng)
         gray = cv2.cvtColor(color, cv2.COLOR_RGB2GRAY)
         kfs[kf_id], feature_s[kf_id] = keyframe(kf_id, stamp, T, gray, depth)
         depth_true[kf_id] = out.depth

@@ -31,11 +31,8 @@ from orchard_mapping.core.odometry import FrontEndParams, RGBDFrontEnd
 from orchard_mapping.core.sidemap import FrontEndResult
 from orchard_mapping.core.types import CameraIntrinsics, RGBDFrame
 from orchard_mapping.pipeline import front_end
-from orchard_mapping.sim.render import Renderer, SensorModel
 from orchard_mapping.sim.scenario import load_scenario
-from orchard_mapping.sim.scene import build_scene
-from orchard_mapping.sim.simulate import intrinsics_of
-from orchard_mapping.sim.trajectory import side_path
+from orchard_mapping.sim.simulate import Rig
 
 SEED = 11
 HALF_RES = {"camera.width": 320, "camera.height": 240, "camera.fx": 307.5, "camera.fy": 307.5,
@@ -79,15 +76,13 @@ def _run(frames: list[RGBDFrame], intr: CameraIntrinsics) -> tuple[FrontEndResul
 @pytest.fixture(scope="module")
 def row() -> Row:
     sc = load_scenario("single_pass", {"row.n_trees": 2, "camera.rate_hz": 15, "masks_every": 0, **HALF_RES})
-    scene = build_scene(sc, SEED)
-    intr = intrinsics_of(sc)
-    path = side_path(sc, "front", scene.row_x, scene.terrain, np.random.default_rng(SEED), 0.0)
-    renderer = Renderer(scene, intr, SEED)
-    sensor = SensorModel.from_camera(sc.camera)
+    rig = Rig.build(sc, SEED)
+    scene, intr = rig.scene, rig.intrinsics
+    path = rig.path("front", np.random.default_rng(SEED))
     rng = np.random.default_rng([SEED, 2])
     frames = []
     for i, (stamp, T) in enumerate(zip(path.stamps, path.poses)):
-        color, _ = sensor.apply(renderer.render(T), rng)
+        color, _, _ = rig.shoot(T, rng)
         frames.append(RGBDFrame(float(stamp), color, None, intr, side="front", index=i))
     T_world_odom = path.poses[0]
     truth = np.linalg.inv(T_world_odom)[None] @ path.poses
