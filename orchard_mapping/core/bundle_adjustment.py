@@ -91,6 +91,10 @@ class BundleAdjustmentParams:
     loop_sigma_rot_deg: float = 1.0
     loop_sigma_trans_m: float = 0.02
     max_iterations: int = 30
+    # Stop when an iteration lowers the error by less than this fraction. Huber's tail converges
+    # linearly without moving the poses: 1e-3 stopped after 9 iterations with the drift and ATE of 30
+    # (4-tree front side, 294 keyframes: 0.263 vs 0.262 % drift, 23 s vs 111 s).
+    relative_error_tol: float = 1e-3
     min_observations: int = 2  # landmarks seen fewer times are left out
 
 
@@ -203,13 +207,14 @@ def _add_loops(
 
 
 def _optimise(
-    graph: gtsam.NonlinearFactorGraph, initial: gtsam.Values, max_iterations: int, what: str
+    graph: gtsam.NonlinearFactorGraph, initial: gtsam.Values, max_iterations: int, what: str,
+    relative_error_tol: float = 1e-5,
 ) -> tuple[gtsam.Values, float, float, int]:
     params = gtsam.LevenbergMarquardtParams()
     params.setMaxIterations(int(max_iterations))
-    # Stop when an iteration lowers the error by < 1e-5 (relative): with Huber the
+    # Stop when an iteration lowers the error by less than relative_error_tol: with Huber the
     # tail converges linearly and further iterations no longer move the poses.
-    params.setRelativeErrorTol(1e-5)
+    params.setRelativeErrorTol(float(relative_error_tol))
     params.setAbsoluteErrorTol(1e-6)
     initial_error = float(graph.error(initial))
     try:
@@ -308,6 +313,7 @@ def bundle_adjust(
     bridge_sigma_trans_m: float = 0.05,
     max_iterations: int = 50,
     min_observations: int = 2,
+    relative_error_tol: float = 1e-5,
 ) -> BAResult:
     """Global bundle adjustment, eq. (objectBA), with Huber on every term.
 
@@ -407,7 +413,7 @@ def bundle_adjust(
         f"bundle adjustment ({mode}: {n_kf} keyframes, {int(used_lm.sum())} landmarks, "
         f"{int(has_depth.sum())} stereo + {int((~has_depth).sum())} projection factors)"
     )
-    result, e0, e1, iters = _optimise(graph, initial, max_iterations, what)
+    result, e0, e1, iters = _optimise(graph, initial, max_iterations, what, relative_error_tol)
 
     out_lm = np.full((n_lm, 3), np.nan)  # (L, 3)
     for j in np.flatnonzero(used_lm):

@@ -338,7 +338,7 @@ class FusionParams:
     # m: cleaned depth is kept for keyframes at least this far from the previous cleaned one (0 = every
     # keyframe). Every keyframe is still fused; the front end's dense keyframes (~2.5 cm apart) would make
     # cleaning (ray cast + floating-pixel filter, ~0.3 s each) the slowest stage of the run.
-    cleaned_spacing_m: float = 0.08
+    cleaned_spacing_m: float = 0.15
 
 
 def fuse_side(frames: Iterable[tuple[np.ndarray, np.ndarray, np.ndarray]], intr: CameraIntrinsics, *,
