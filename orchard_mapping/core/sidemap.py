@@ -81,4 +81,5 @@ class SideMap:
     cloud_colors: np.ndarray  # (P, 3) uint8 RGB
     scale_free: bool = False  # True in RGB-only mode: the map is up to an unknown scale
     odometry_poses: np.ndarray | None = None  # (K, 4, 4) front-end keyframe poses, before loop closure and BA
-    cleaned_depth: dict[int, np.ndarray] = field(default_factory=dict)  # keyframe id -> (H, W) float32 m, 0 = removed
+    # keyframe id -> (H, W) float32 m, 0 = removed; for keyframes fusion.cleaned_spacing_m apart (not all)
+    cleaned_depth: dict[int, np.ndarray] = field(default_factory=dict)
