@@ -39,10 +39,16 @@ __all__ = [
     "Verification",
     "bow_vectors",
     "make_keyframe_features",
+    "no_keyframe_features",
     "score_matrix",
 ]
 
 DESCRIPTOR_BYTES = 32  # ORB: 256 bits
+
+
+def no_keyframe_features() -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """What `make_keyframe_features` returns for an image without features: N = 0."""
+    return np.zeros((0, 2), np.float32), np.zeros((0, DESCRIPTOR_BYTES), np.uint8), np.zeros(0, np.float32)
 
 
 def _edge_free_depth(depth: np.ndarray, window: int, max_jump: float) -> np.ndarray:
@@ -83,7 +89,7 @@ def make_keyframe_features(
     orb = cv2.ORB_create(nfeatures=n_features)
     kps, des = orb.detectAndCompute(gray, None)
     if des is None or len(kps) == 0:
-        return (np.zeros((0, 2), np.float32), np.zeros((0, DESCRIPTOR_BYTES), np.uint8), np.zeros(0, np.float32))
+        return no_keyframe_features()
     uv = np.array([k.pt for k in kps], np.float32)  # (N, 2)
     if depth is None:
         z = np.zeros(len(uv), np.float32)

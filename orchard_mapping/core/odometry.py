@@ -26,7 +26,7 @@ from dataclasses import dataclass
 import cv2
 import numpy as np
 
-from orchard_mapping.core.loop_closure import make_keyframe_features
+from orchard_mapping.core.loop_closure import make_keyframe_features, no_keyframe_features
 from orchard_mapping.core.sidemap import FrontEndResult, Keyframe, Observations
 from orchard_mapping.core.types import CameraIntrinsics, RGBDFrame
 
@@ -336,13 +336,13 @@ class RGBDFrontEnd:
         """Append keyframe `pose` with its landmark observations (ids, uv, z) and ORB features."""
         kf_id = len(self.keyframes)
         self._obs.append((np.full(len(ids), kf_id), ids, uv, z))
-        last = self._orb_pose
-        if (last is None or np.linalg.norm((np.linalg.inv(last) @ pose)[:3, 3]) >= self.p.orb_keyframe_translation_m
-                or _rotation_deg(np.linalg.inv(last) @ pose) >= self.p.orb_keyframe_rotation_deg):
+        rel = None if self._orb_pose is None else np.linalg.inv(self._orb_pose) @ pose
+        if (rel is None or np.linalg.norm(rel[:3, 3]) >= self.p.orb_keyframe_translation_m
+                or _rotation_deg(rel) >= self.p.orb_keyframe_rotation_deg):
             kp_uv, desc, kp_z = make_keyframe_features(gray, depth, n_features=self.p.orb_features)
             self._orb_pose = pose.copy()
         else:  # between ORB keyframes: tracks only
-            kp_uv, desc, kp_z = np.zeros((0, 2), np.float32), np.zeros((0, 32), np.uint8), np.zeros(0, np.float32)
+            kp_uv, desc, kp_z = no_keyframe_features()
         self.keyframes.append(Keyframe(
             id=kf_id, frame_index=frame.index, stamp=frame.stamp, T_odom_cam=pose.copy(), keypoints=kp_uv,
             descriptors=desc, keypoint_depth=kp_z, keypoint_landmark=np.full(len(kp_uv), -1, np.int64)))
