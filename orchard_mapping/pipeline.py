@@ -60,11 +60,16 @@ def open_sides(front: Path, back: Path | None, cfg: OrchardConfig) -> dict[str, 
     if back is not None:
         return {"front": read_rgbd(front, inp.topics, **kw), "back": read_rgbd(back, inp.topics, **kw)}
     seq = read_rgbd(front, inp.topics, **kw)
-    labels = set(seq.sides.tolist()) - {""}
+    labels = set(seq.sides) - {""}
     if not labels:
         raise BagFormatError(f"a single bag needs the side topic to tell front from back; no labels found",
                              bag=str(front), topic=inp.topics.side)
     return {side: seq for side in SIDES if side in labels}
+
+
+def _side_mask(seq: RGBDSequence, side: str) -> np.ndarray:
+    """(N,) bool: the frames of a single-bag recording labelled `side` by the side topic."""
+    return np.asarray(seq.sides, dtype=str) == side
 
 
 def _frames_of(seq: RGBDSequence, side: str, labelled: bool) -> Iterator[RGBDFrame]:
@@ -89,7 +94,7 @@ def front_end(frames, intr, cfg: OrchardConfig, progress: Progress | None, label
 def reconstruct_side(seq: RGBDSequence, side: str, cfg: OrchardConfig, timings: Timings, labelled: bool = False,
                      progress: Progress | None = None) -> SideMap:
     """Front end, pose graph, bundle adjustment for one side."""
-    n = int(np.sum(seq.sides == side)) if labelled else len(seq)
+    n = int(np.sum(_side_mask(seq, side))) if labelled else len(seq)
     t0 = time.perf_counter()
     fe = front_end(_frames_of(seq, side, labelled), seq.intrinsics, cfg, progress, side, n)
     timings.add(f"front_end_{side}", time.perf_counter() - t0)
@@ -181,12 +186,21 @@ def run(front: str | Path, back: str | Path | None, out: str | Path, cfg: Orchar
     succeeded: a failed run leaves no half-written result (earlier results in `out` stay as they were).
     """
     out = Path(out)
+    created = [d for d in (out, *out.parents) if not d.exists()]  # folders this run makes (deepest first)
     out.mkdir(parents=True, exist_ok=True)
     stage = Path(tempfile.mkdtemp(prefix=".staging-", dir=out))
     try:
         result = _run(Path(front), Path(back) if back is not None else None, stage, cfg, progress)
         for f in sorted(stage.iterdir()):
             os.replace(f, out / f.name)
+    except BaseException:
+        shutil.rmtree(stage, ignore_errors=True)
+        for d in created:  # a failed run leaves no folder it created itself (rmdir: only if still empty)
+            try:
+                d.rmdir()
+            except OSError:
+                break
+        raise
     finally:
         shutil.rmtree(stage, ignore_errors=True)
     return RunResult(out, result.sides, result.timings)
@@ -200,9 +214,9 @@ def _run(front: Path, back: Path | None, out: Path, cfg: OrchardConfig, progress
     labelled = back is None
     sides: dict[str, SideMap] = {}
     for side, seq in seqs.items():
-        timings.frames += int(np.sum(seq.sides == side)) if labelled else len(seq)
+        timings.frames += int(np.sum(_side_mask(seq, side))) if labelled else len(seq)
         if labelled:
-            st = seq.stamps[seq.sides == side]
+            st = seq.stamps[_side_mask(seq, side)]
             timings.recording_duration_s += float(st[-1] - st[0]) if len(st) > 1 else 0.0
         else:
             timings.recording_duration_s += seq.duration

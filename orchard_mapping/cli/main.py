@@ -59,6 +59,7 @@ def simulate(
     out: Path = typer.Option(..., help="Output folder: OUT/front, OUT/back, OUT/ground_truth.json, OUT/masks."),
     force: bool = typer.Option(False, help="Replace a non-empty output folder."),
     set_: list[str] = typer.Option([], "--set", help="Scenario override, e.g. --set camera.rate_hz=10."),
+    compress: bool = typer.Option(False, help="zstd chunk compression inside the MCAP bags (smaller files)."),
 ) -> None:
     """Simulate both sides of an orchard row: RGB-D bags plus ground truth."""
     from rich.progress import BarColumn, MofNCompleteColumn, Progress, TextColumn, TimeRemainingColumn
@@ -81,7 +82,7 @@ def simulate(
                     tasks[label] = bar.add_task(f"rendering {label}", total=n)
                 bar.update(tasks[label], completed=i)
 
-            result = run_simulation(sc, seed, out, force=force, progress=progress)
+            result = run_simulation(sc, seed, out, force=force, progress=progress, compress=compress)
     except OrchardMappingError as err:
         raise _fail(err) from err
     console.print(f"scenario [bold]{sc.name}[/], {sc.row.n_trees} trees, seed {seed}")

@@ -314,6 +314,7 @@ def bundle_adjust(
     max_iterations: int = 50,
     min_observations: int = 2,
     relative_error_tol: float = 1e-5,
+    scale_anchor: int | None = None,
 ) -> BAResult:
     """Global bundle adjustment, eq. (objectBA), with Huber on every term.
 
@@ -328,6 +329,8 @@ def bundle_adjust(
     left out. A keyframe left with fewer than 3 observations is tied to the
     previous one by its initial relative pose (bridge sigmas), so the system
     stays determined. Loop closures enter as robust BetweenFactorPose3.
+    scale_anchor (rgb): the keyframe whose distance to keyframe 0 keeps its initial value (the scale gauge);
+    None = the keyframe farthest from keyframe 0.
     """
     t0 = time.perf_counter()
     if mode not in ("rgbd", "rgb"):
@@ -384,12 +387,14 @@ def bundle_adjust(
         else:
             graph.add(gtsam.GenericProjectionFactorCal3_S2(uv[i], mono_noise, xk, lj, K_mono))
 
-    scale_anchor = None
     if mode == "rgb":
         if n_kf < 2:
             raise ReconstructionError("RGB-only bundle adjustment needs at least 2 keyframes")
         dist = np.linalg.norm(poses[:, :3, 3] - poses[0, :3, 3], axis=1)  # (K,)
-        scale_anchor = int(np.argmax(dist))
+        if scale_anchor is None:
+            scale_anchor = int(np.argmax(dist))
+        if not 0 < scale_anchor < n_kf:
+            raise ReconstructionError(f"scale_anchor {scale_anchor} is not a keyframe other than 0 (0..{n_kf - 1})")
         if dist[scale_anchor] < 1e-6:
             raise ReconstructionError("RGB-only bundle adjustment: all keyframes at one position, scale undefined")
     _add_gauge(graph, poses, mode, scale_anchor)

@@ -45,12 +45,15 @@ from dataclasses import dataclass
 import cv2
 import numpy as np
 
-from orchard_mapping.core.odometry import FrontEndParams, RGBDFrontEnd, _rotation_deg
+from orchard_mapping.core.odometry import FrontEndParams, RGBDFrontEnd, _pose_from_rt, _rotation_deg
 from orchard_mapping.core.bundle_adjustment import ReconstructionError, bundle_adjust
-from orchard_mapping.core.sidemap import FrontEndResult, Observations
+from orchard_mapping.core.loop_closure import no_keyframe_features
+from orchard_mapping.core.sidemap import FrontEndResult, Keyframe, Observations
 from orchard_mapping.core.types import CameraIntrinsics, RGBDFrame
 
 __all__ = ["MonoParams", "RGBFrontEnd", "triangulate"]
+
+ORB_PATCH_PX = 31  # ORB's default patch
 
 
 @dataclass(frozen=True)
@@ -67,6 +70,20 @@ class MonoParams:
     pending_max_keyframes: int = 10  # pending tracks older than this many keyframes are dropped
     keyframe_baseline_ratio: float = 0.06  # keyframe when translation / median landmark depth exceeds it
     retriangulate: bool = True  # live landmarks are re-triangulated from all their observations at each keyframe
+    # Relocalisation after a loss: the landmarks of the last reloc_keyframes keyframes carry ORB descriptors
+    # (computed at their tracked corners); a lost frame's corners are matched against them (ratio test) and
+    # PnP places it in the map, so the map's scale is kept across the gap.
+    reloc_keyframes: int = 8
+    reloc_ratio: float = 0.85  # Lowe ratio of the descriptor matches
+    reloc_pnp_px: float = 3.0  # PnP RANSAC threshold on descriptor matches (corners re-detected to ~1 px)
+    reloc_max_hamming: int = 64  # of 256 bits
+    # Keyframes after a relocalisation before a bundle adjustment of the re-entry (the keyframes since
+    # reloc_keyframes before the gap, their landmarks; scale held by the keyframes before the gap). The
+    # first keyframes after a gap stand on few landmarks and would pass a scale error on to the new ones.
+    reentry_ba_keyframes: int = 4
+    # Guided search radius around the extrapolated pixel, of the image width: hand-held sway makes a constant-
+    # velocity extrapolation over a 9-frame gap 2.5-7.7 deg off (simulated rows, true velocity).
+    reloc_search_fraction: float = 0.25
 
 
 def triangulate(T_a: np.ndarray, xa: np.ndarray, T_b: np.ndarray, xb: np.ndarray) -> np.ndarray:
@@ -115,6 +132,10 @@ class RGBFrontEnd(RGBDFrontEnd):
         self._init_hist: list[tuple[int, np.ndarray]] = []  # (slot in self.poses, pixels (N, 2))
         # When lost: (image, track pixels, landmark ids, pose, slot in self.poses) of the last tracked frame.
         self._last_good: tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray, int] | None = None
+        self._kf_slot: list[int] = []  # position in self.poses of each keyframe's frame
+        self._reentry_kf: int | None = None  # keyframe made at the last relocalisation, until its re-entry BA
+        # Upright BRIEF (angle 0) at given corners: descriptors of landmarks and of a lost frame's corners.
+        self._orb = cv2.ORB_create(edgeThreshold=ORB_PATCH_PX // 2 + 1, patchSize=ORB_PATCH_PX)
 
     # -- geometry helpers
 
@@ -363,7 +384,8 @@ class RGBFrontEnd(RGBDFrontEnd):
 
     def _track_klt(self, gray: np.ndarray, frame: RGBDFrame) -> np.ndarray | None:
         self._track_pending(gray)  # first: a keyframe made while tracking the landmarks triangulates them
-        return super()._track_klt(gray, frame)
+        pose = super()._track_klt(gray, frame)
+        return None if pose is None else self._pose  # a re-entry bundle adjustment may have moved it
 
     def _maybe_keyframe(self, gray: np.ndarray, frame: RGBDFrame, pose: np.ndarray) -> None:
         rel = np.linalg.inv(self._kf_pose) @ pose
@@ -384,6 +406,8 @@ class RGBFrontEnd(RGBDFrontEnd):
             self._retriangulate()
         self._triangulate_pending(kf)
         self._start_pending(self._new_corners(gray, np.vstack([self._pts, self._pend_pts])).astype(np.float64), kf)
+        if self._reentry_kf is not None and kf - self._reentry_kf >= self.m.reentry_ba_keyframes:
+            self._reentry_bundle_adjustment()
         return True
 
     def _lose_tracks(self) -> None:
@@ -391,45 +415,208 @@ class RGBFrontEnd(RGBDFrontEnd):
         self._keep_pending(np.zeros(len(self._pend_uid), bool))
         self._pobs_kf, self._pobs_uid, self._pobs_uv = np.zeros(0, np.int64), np.zeros(0, np.int64), np.zeros((0, 2))
 
+    def _add_keyframe(self, gray: np.ndarray, depth: np.ndarray | None, frame: RGBDFrame, pose: np.ndarray,
+                      ids: np.ndarray, uv: np.ndarray, z: np.ndarray) -> None:
+        first_of_start = not self.keyframes and self._ref is not None  # the reference frame of initialisation
+        self._kf_slot.append(self._ref_slot if first_of_start else len(self.poses))
+        super()._add_keyframe(gray, depth, frame, pose, ids, uv, z)
+
+    def _reentry_bundle_adjustment(self) -> None:
+        """Bundle adjustment of the keyframes from reloc_keyframes before the re-entry keyframe to now and the
+        landmarks they observe; keyframe 0 of the window and its distance to the last keyframe before the
+        gap are held (the map's frame and scale). Keyframe poses, the frames between them (moved with their
+        keyframe) and the landmarks are updated."""
+        rec = self._reentry_kf
+        self._reentry_kf = None
+        first = max(0, rec - self.m.reloc_keyframes)
+        if rec - first < 2:
+            return
+        kf_all, lm_all, uv_all, _ = (np.concatenate(x) for x in zip(*self._obs))
+        sel = kf_all >= first
+        lm_ids, inv = np.unique(lm_all[sel], return_inverse=True)
+        obs = Observations(kf_all[sel] - first, inv, uv_all[sel], np.zeros(int(sel.sum())))
+        old = np.array([k.T_odom_cam for k in self.keyframes[first:]])
+        try:
+            ba = bundle_adjust(old, self.landmarks[lm_ids], obs, self.K, mode="rgb", max_iterations=20,
+                               scale_anchor=rec - 1 - first)
+        except ReconstructionError as e:
+            self.events.append(f"re-entry bundle adjustment failed ({e}); keeping the tracked poses")
+            return
+        ok = np.isfinite(ba.landmarks).all(axis=1)
+        self._lm_sum[lm_ids[ok]] = ba.landmarks[ok] * self._lm_w[lm_ids[ok], None]
+        slots = self._kf_slot[first:] + [len(self.poses)]
+        for i, k in enumerate(range(first, len(self.keyframes))):
+            C = ba.poses[i] @ np.linalg.inv(old[i])  # correction of keyframe k, applied to the frames after it
+            self.keyframes[k].T_odom_cam[:] = ba.poses[i]
+            for slot in range(slots[i], slots[i + 1]):
+                if np.isfinite(self.poses[slot]).all():
+                    self.poses[slot] = C @ self.poses[slot]
+        self._pose = C @ self._pose
+        self._kf_pose = self.keyframes[-1].T_odom_cam.copy()
+
+    def _keyframe_features(self, gray: np.ndarray, depth: np.ndarray | None, pose: np.ndarray, ids: np.ndarray,
+                           uv: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+        """Colour-only keyframes carry descriptors of the landmarks they observe (at the tracked corners),
+        so that a lost frame can be placed against the map (relocalisation keeps the map's scale)."""
+        kp, des, lm = self._corner_descriptors(gray, uv, ids)
+        return kp, des, np.zeros(len(kp), np.float32), lm
+
+    def _corner_descriptors(self, gray: np.ndarray, uv: np.ndarray, ids: np.ndarray
+                            ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """Upright ORB descriptors at pixels uv (N, 2) tagged ids (N,): (uv, descriptors, ids) of those not
+        too close to the border."""
+        if not len(uv):
+            kp, des, _ = no_keyframe_features()
+            return kp, des, np.zeros(0, np.int64)
+        kps = [cv2.KeyPoint(float(u), float(v), ORB_PATCH_PX, 0.0, 0.0, 0, i) for i, (u, v) in enumerate(uv)]
+        kps, des = self._orb.compute(gray, kps)
+        if des is None or not len(kps):
+            kp, des, _ = no_keyframe_features()
+            return kp, des, np.zeros(0, np.int64)
+        keep = np.array([k.class_id for k in kps], np.int64)
+        return np.asarray(uv, np.float32)[keep], des.astype(np.uint8), np.asarray(ids, np.int64)[keep]
+
+    def _keyframe_points(self, kf: Keyframe, qi: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        lm = kf.keypoint_landmark[qi]
+        ok = lm >= 0
+        ok[ok] = np.isfinite(self.landmarks[lm[ok]]).all(axis=1)
+        return self.landmarks[lm[ok]], ok
+
     def _relocalise(self, gray: np.ndarray, frame: RGBDFrame) -> np.ndarray | None:
-        """Lost: track the last good frame's landmarks into this one, else the RGB-D front end's ORB search."""
+        """Lost: place the frame against the map's recent landmarks by descriptor matching and PnP (guided
+        by the pose extrapolated with the last motion, else unguided), gather every recent landmark that
+        pose predicts in view, and re-track the last good frame's landmarks from there. Placing the frame
+        against the map, not against a new two-view start, keeps the map's scale across the gap. A colour
+        frame alone cannot seed a map, so there is no restart: a frame that cannot be placed stays lost."""
         if self._lost_streak == 0 and self._prev_gray is not None and len(self._pts):
             self._last_good = (self._prev_gray, self._pts.copy(), self._ids.copy(), self._pose.copy(),
                                len(self.poses) - 1)
-        pose = self._recover_by_tracking(gray, frame)
-        if pose is not None:
-            return pose
-        return super()._relocalise(gray, frame)  # logs the loss (its ORB search finds no depth here)
-
-    def _recover_by_tracking(self, gray: np.ndarray, frame: RGBDFrame) -> np.ndarray | None:
-        """KLT (deeper pyramid) from the last tracked image, started at the landmarks' pixels under the
-        pose extrapolated with the last motion, then PnP. Colour-only maps cannot be re-seeded, so this
-        bridges short losses (blank or blurred frames) that the ORB search, needing several matches per
-        landmark, misses."""
-        if self._last_good is None:
-            return None
-        prev_gray, pts, ids, pose0, slot = self._last_good
-        steps = len(self.poses) - slot  # frames since the last tracked one
-        pred = pose0.copy()
-        for _ in range(steps):
-            pred = pred @ self._velocity
-        guess, z = self._project(pred, self.landmarks[ids])
-        tracked = self._klt(gray, pts, np.where((z > 0)[:, None], guess, pts), prev=prev_gray,
-                            levels=self.p.klt_levels + 2)
-        if tracked is None:
-            return None
-        p1, good = tracked
-        pose, inl = self._pnp(self.landmarks[ids[good]], p1[good].astype(np.float64), None)
-        if pose is None:
-            return None
         self.lost_frames += 1
         self._lose_tracks()
-        self._pts, self._ids = p1[good][inl].astype(np.float32), ids[good][inl]
-        self._pose = pose
-        self.events.append(f"frame {frame.index}: tracking recovered ({len(inl)} landmarks tracked from the last "
-                           f"tracked frame, {steps} frames back)")
+        corners = cv2.goodFeaturesToTrack(gray, 2 * self.p.max_corners, self.p.corner_quality,
+                                          max(2, self.p.corner_min_distance_px // 2))
+        if corners is None or len(corners) < self.p.min_inliers:
+            self.events.append(f"frame {frame.index}: tracking lost (no texture)")
+            return None
+        placed = self._relocalise_against_map(gray, corners.reshape(-1, 2))
+        if placed is None:
+            self.events.append(f"frame {frame.index}: tracking lost, relocalisation failed")
+            return None
+        pose, pts, ids = placed
+        self._pts, self._ids, self._pose = pts, ids, pose
+        steps = len(self.poses) - self._last_good[4] if self._last_good is not None else 0
+        self.events.append(f"frame {frame.index}: tracking recovered: relocalised against the map "
+                           f"({len(ids)} landmarks; last tracked frame {steps} frames back)")
         self._make_keyframe(gray, frame, pose)
+        self._reentry_kf = len(self.keyframes) - 1
         return pose
+
+    def _predicted_pose(self) -> np.ndarray | None:
+        """The last tracked pose extrapolated with the last motion to the current frame."""
+        if self._last_good is None:
+            return None
+        pred = self._last_good[3].copy()
+        for _ in range(len(self.poses) - self._last_good[4]):
+            pred = pred @ self._velocity
+        return pred
+
+    def _relocalise_against_map(self, gray: np.ndarray, corners: np.ndarray
+                                ) -> tuple[np.ndarray, np.ndarray, np.ndarray] | None:
+        """(T_odom_cam, track pixels (N, 2) float32, landmark ids (N,)) of a lost frame with corners (C, 2).
+
+        The landmarks seen by the last reloc_keyframes keyframes (newest descriptor of each) are matched to
+        the corners' descriptors within reloc_search_fraction of the image width of their pixel under the
+        extrapolated pose, and over the whole image; the match set whose PnP has more inliers wins. Then
+        every such landmark is matched again within 2 reloc_pnp_px of its pixel under that pose, the last
+        good frame's tracks are re-tracked by KLT started there, and a last PnP keeps the inliers."""
+        kfs = [k for k in self.keyframes[-self.m.reloc_keyframes:][::-1] if len(k.descriptors)]
+        if not kfs:
+            return None
+        lm = np.concatenate([k.keypoint_landmark for k in kfs])
+        des = np.vstack([k.descriptors for k in kfs])
+        _, first = np.unique(lm, return_index=True)  # newest first: the first row of each landmark
+        lm, des = lm[first], des[first]
+        X = self.landmarks[lm]
+        finite = np.isfinite(X).all(axis=1)
+        lm, des, X = lm[finite], des[finite], X[finite]
+        uv, fdes, _ = self._corner_descriptors(gray, corners, np.arange(len(corners)))
+        if len(uv) < self.p.min_inliers or len(lm) < self.p.min_inliers:
+            return None
+        # Pose hypotheses: matches guided by the extrapolated pose, and unguided ones. Each is expanded to all
+        # recent landmarks it predicts in view plus the last good frame's tracks; the largest consensus wins
+        # (a pose from a few far background points can be metres off along the view yet fit them).
+        best = None
+        pred = self._predicted_pose()
+        for guide in ((pred,) if pred is not None else ()) + (None,):
+            q, t = self._match_descriptors(des, X, fdes, uv, guide, self.m.reloc_search_fraction * self.K.width)
+            pose, _ = self._pnp_matches(X[q], uv[t], self.m.reloc_pnp_px)
+            if pose is None:
+                continue
+            for _ in range(2):  # the expanded consensus refines the pose, which finds more matches
+                grown = self._grow_matches(gray, pose, lm, des, X, fdes, uv)
+                if grown is None:
+                    break
+                pose = grown[0]
+                if best is None or len(grown[2]) > len(best[2]):
+                    best = grown
+        return best
+
+    def _grow_matches(self, gray: np.ndarray, pose: np.ndarray, lm: np.ndarray, des: np.ndarray, X: np.ndarray,
+                      fdes: np.ndarray, uv: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray] | None:
+        """Descriptor matches of every recent landmark within 2 reloc_pnp_px of its pixel under `pose`, and the
+        last good frame's tracks re-tracked by KLT (deeper pyramid) started there, then PnP:
+        (pose, track pixels (N, 2) float32, landmark ids (N,)) or None."""
+        q, t = self._match_descriptors(des, X, fdes, uv, pose, 2 * self.m.reloc_pnp_px)
+        img, ids = uv[t].astype(np.float64), lm[q]
+        if self._last_good is not None:
+            prev_gray, pts, lg_ids, _, _ = self._last_good
+            guess, z = self._project(pose, self.landmarks[lg_ids])
+            tracked = self._klt(gray, pts, np.where((z > 0)[:, None], guess, pts), prev=prev_gray,
+                                levels=self.p.klt_levels + 2)
+            if tracked is not None:
+                p1, good = tracked
+                keep = ~np.isin(ids, lg_ids[good])  # KLT's subpixel positions where both have the landmark
+                img = np.vstack([img[keep], p1[good]])
+                ids = np.concatenate([ids[keep], lg_ids[good]])
+        pose, inl = self._pnp(self.landmarks[ids], img, None)
+        if pose is None:
+            return None
+        return pose, img[inl].astype(np.float32), ids[inl]
+
+    def _match_descriptors(self, des: np.ndarray, X: np.ndarray, fdes: np.ndarray, uv: np.ndarray,
+                           pose: np.ndarray | None, radius: float | None) -> tuple[np.ndarray, np.ndarray]:
+        """Ratio-test matches (landmark rows, corner rows) of landmark descriptors des (L, 32) at odom points
+        X (L, 3) to corner descriptors fdes (C, 32) at pixels uv (C, 2); with a pose, only corners within
+        `radius` px of the landmark's predicted pixel compete."""
+        mask = None
+        if pose is not None:
+            pix, z = self._project(pose, X)
+            d2 = np.sum((pix[:, None, :] - uv[None, :, :]) ** 2, axis=2)  # (L, C)
+            mask = ((d2 <= radius * radius) & (z > 0)[:, None]).astype(np.uint8)
+        pairs = self.matcher.knnMatch(des, fdes, k=2, mask=mask) if mask is None or mask.any() else []
+        q, t = [], []
+        for match in pairs:
+            if not match:
+                continue
+            if len(match) == 1 or match[0].distance < self.m.reloc_ratio * match[1].distance:
+                if match[0].distance <= self.m.reloc_max_hamming:
+                    q.append(match[0].queryIdx)
+                    t.append(match[0].trainIdx)
+        return np.array(q, int), np.array(t, int)
+
+    def _pnp_matches(self, obj: np.ndarray, img: np.ndarray, px: float) -> tuple[np.ndarray | None, np.ndarray]:
+        """RANSAC PnP (AP3P, then LM on the inliers) of 3D-2D matches at threshold px: pose and inliers."""
+        if len(obj) < max(self.p.min_inliers, 6):
+            return None, np.zeros(0, int)
+        ok, rvec, tvec, inl = cv2.solvePnPRansac(obj.astype(np.float64), img.astype(np.float64), self.Kmat, None,
+                                                 iterationsCount=500, reprojectionError=px, confidence=0.999,
+                                                 flags=cv2.SOLVEPNP_AP3P)
+        if not ok or inl is None or len(inl) < self.p.min_inliers:
+            return None, np.zeros(0, int)
+        inl = inl.ravel()
+        rvec, tvec = cv2.solvePnPRefineLM(obj[inl].astype(np.float64), img[inl].astype(np.float64), self.Kmat,
+                                          None, rvec, tvec)
+        return _pose_from_rt(rvec, tvec), inl
 
     def result(self) -> FrontEndResult:
         if not self.keyframes:

@@ -336,6 +336,17 @@ class RGBDFrontEnd:
         """Append keyframe `pose` with its landmark observations (ids, uv, z) and ORB features."""
         kf_id = len(self.keyframes)
         self._obs.append((np.full(len(ids), kf_id), ids, uv, z))
+        kp_uv, desc, kp_z, kp_lm = self._keyframe_features(gray, depth, pose, ids, uv)
+        self.keyframes.append(Keyframe(
+            id=kf_id, frame_index=frame.index, stamp=frame.stamp, T_odom_cam=pose.copy(), keypoints=kp_uv,
+            descriptors=desc, keypoint_depth=kp_z, keypoint_landmark=kp_lm))
+        self._kf_pose = pose.copy()
+
+    def _keyframe_features(self, gray: np.ndarray, depth: np.ndarray | None, pose: np.ndarray, ids: np.ndarray,
+                           uv: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+        """ORB keypoints (N, 2), descriptors (N, 32), depth (N,) and landmark id (N,) (-1: none) of a new
+        keyframe with pose `pose` that observes landmarks `ids` at pixels `uv`: RGB-D keyframes carry ORB
+        features with depth (relocalisation, loop detection) only every orb_keyframe_* of motion."""
         rel = None if self._orb_pose is None else np.linalg.inv(self._orb_pose) @ pose
         if (rel is None or np.linalg.norm(rel[:3, 3]) >= self.p.orb_keyframe_translation_m
                 or _rotation_deg(rel) >= self.p.orb_keyframe_rotation_deg):
@@ -343,10 +354,7 @@ class RGBDFrontEnd:
             self._orb_pose = pose.copy()
         else:  # between ORB keyframes: tracks only
             kp_uv, desc, kp_z = no_keyframe_features()
-        self.keyframes.append(Keyframe(
-            id=kf_id, frame_index=frame.index, stamp=frame.stamp, T_odom_cam=pose.copy(), keypoints=kp_uv,
-            descriptors=desc, keypoint_depth=kp_z, keypoint_landmark=np.full(len(kp_uv), -1, np.int64)))
-        self._kf_pose = pose.copy()
+        return kp_uv, desc, kp_z, np.full(len(kp_uv), -1, np.int64)
 
     def _lose_tracks(self) -> None:
         self._pts = np.zeros((0, 2), np.float32)

@@ -115,9 +115,10 @@ class BagWriter:
             bag.write_color("/camera/color/image_raw", 0.0, rgb)
     """
 
-    def __init__(self, path: str | os.PathLike[str], overwrite: bool = False) -> None:
+    def __init__(self, path: str | os.PathLike[str], overwrite: bool = False, compress: bool = False) -> None:
         self.path = Path(path)
         self.overwrite = overwrite
+        self.compress = compress  # zstd chunk compression inside the MCAP file (readable by any MCAP reader)
         self._store = typestore()
         self._tmp: Path | None = None
         self._writer: Writer | None = None
@@ -134,6 +135,8 @@ class BagWriter:
         # A sibling folder on the same file system, so the final rename is atomic.
         self._tmp = Path(tempfile.mkdtemp(prefix=f".{self.path.name}.", suffix=".partial", dir=self.path.parent))
         self._writer = Writer(self._tmp / self.path.name, version=9, storage_plugin=StoragePlugin.MCAP)
+        if self.compress:
+            self._writer.set_compression(Writer.CompressionMode.STORAGE, Writer.CompressionFormat.ZSTD)
         try:
             self._writer.open()
         except BaseException:

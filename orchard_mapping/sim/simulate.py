@@ -111,12 +111,13 @@ def _tum(path: CameraPath, T_world_odom: np.ndarray) -> list[list[float]]:
 
 def _record(scene: Scene, renderer: Renderer, sensor: SensorModel, path: CameraPath, bag_dir: Path,
             mask_dir: Path | None, masks_every: int, rng: np.random.Generator, acc: dict[str, VisibilityAccumulator],
-            topics: TopicsConfig, label: str, progress: Progress | None, with_side_topic: bool) -> None:
+            topics: TopicsConfig, label: str, progress: Progress | None, with_side_topic: bool,
+            compress: bool = False) -> None:
     intr = renderer.K
     n = len(path.stamps)
     index_rows = []
     last_side = ""
-    with BagWriter(bag_dir) as bag:
+    with BagWriter(bag_dir, compress=compress) as bag:
         for i in range(n):
             stamp = float(path.stamps[i])
             out = renderer.render(path.poses[i], stamp - float(path.stamps[0]))
@@ -180,12 +181,12 @@ def _tree_truth(scene: Scene, acc: dict[str, VisibilityAccumulator], alpha: floa
 
 def simulate(sc: Scenario, seed: int, out_dir: str | Path, *, force: bool = False,
              topics: TopicsConfig = TopicsConfig(), progress: Progress | None = None,
-             record: tuple[str, ...] = ("front", "back")) -> SimulationResult:
+             record: tuple[str, ...] = ("front", "back"), compress: bool = False) -> SimulationResult:
     """Render both sides of a row and write bags, masks and ground truth into out_dir.
 
     `record` limits which sides are rendered into bags (tests of one side's reconstruction): the
     ground truth keeps both sides' paths, and marks the side not recorded (`"recorded": false`; its
-    visibility fields then say nothing).
+    visibility fields then say nothing). `compress`: zstd chunk compression of the MCAP bags.
     """
     out = Path(out_dir)
     if out.exists() and any(out.iterdir()):
@@ -208,7 +209,8 @@ def simulate(sc: Scenario, seed: int, out_dir: str | Path, *, force: bool = Fals
         loop = rig.path("front", path_rng, T0_FRONT)
         mask_dir = _mask_dir(out, "loop", sc)
         _record(scene, renderer, sensor, loop, out / "loop", mask_dir, sc.masks_every,
-                np.random.default_rng([seed, 2]), acc, topics, "loop", progress, with_side_topic=True)
+                np.random.default_rng([seed, 2]), acc, topics, "loop", progress, with_side_topic=True,
+                compress=compress)
         bags["loop"] = out / "loop"
         frames["loop"] = len(loop.stamps)
         for side in ("front", "back"):
@@ -225,7 +227,8 @@ def simulate(sc: Scenario, seed: int, out_dir: str | Path, *, force: bool = Fals
             if side not in record:
                 continue
             _record(scene, renderer, sensor, paths[side], out / side, _mask_dir(out, side, sc), sc.masks_every,
-                    np.random.default_rng([seed, 2 + k]), acc, topics, side, progress, with_side_topic=False)
+                    np.random.default_rng([seed, 2 + k]), acc, topics, side, progress, with_side_topic=False,
+                    compress=compress)
             bags[side] = out / side
             frames[side] = len(paths[side].stamps)
         T_world_odom = {side: paths[side].poses[0] for side in ("front", "back")}

@@ -1,10 +1,10 @@
 """Colour-only front end (orchard_mapping/core/mono_odometry.py) on simulated colour images, then RGB-only BA.
 
 The recording: single_pass (one level sweep of the front side at trunk height), a 2-tree row at 15 Hz and
-0.5 m/s (~99 frames over ~3.5 m), rendered at half resolution (320x240, the 640x480 field of view) to keep
-the suite fast on 2 cores, with the simulator's colour noise and exposure jitter; the frames carry no depth.
-The KLT window is 15 px here: the 21 px default is sized for 640x480, and at half resolution it spans twice
-the scene (seeds 3, 5, 7, 11 measured: scale halves within 0.1-1.4 % with 15 px, up to 2.6 % with 11 or 21).
+0.5 m/s (~99 frames over ~3.5 m), at the product's 640x480 with the default front-end settings and the
+simulator's colour noise and exposure jitter; the frames carry no depth. (Half resolution was used before
+to save time: it made the colour-only map marginal, the recovery after blank frames failing on some seeds
+and processors, since a quarter of the pixels gives a quarter of the corners to relocalise with.)
 Truth: the simulator's camera poses (odom = the first camera) and the scene's triangles.
 
 The reconstruction is up to scale, so it is compared with the truth after a fitted similarity. Trajectory:
@@ -35,9 +35,7 @@ from orchard_mapping.sim.scenario import load_scenario
 from orchard_mapping.sim.simulate import Rig
 
 SEED = 11
-HALF_RES = {"camera.width": 320, "camera.height": 240, "camera.fx": 307.5, "camera.fy": 307.5,
-            "camera.cx": 159.5, "camera.cy": 119.5}
-PARAMS = FrontEndParams(klt_window_px=15)
+PARAMS = FrontEndParams()
 ATE_MAX_PERCENT = 0.5  # of the path length, after a similarity fit
 SCALE_HALVES_MAX = 0.03  # scale fitted on the first and on the second half of the keyframes
 LANDMARK_MEDIAN_MAX_M = 0.03  # median distance of the landmarks to the true surfaces
@@ -74,12 +72,16 @@ def _run(frames: list[RGBDFrame], intr: CameraIntrinsics) -> tuple[FrontEndResul
 
 
 @pytest.fixture(scope="module")
-def row() -> Row:
-    sc = load_scenario("single_pass", {"row.n_trees": 2, "camera.rate_hz": 15, "masks_every": 0, **HALF_RES})
-    rig = Rig.build(sc, SEED)
+def row(seed_offset) -> Row:
+    return make_row(SEED + seed_offset)
+
+
+def make_row(seed: int) -> Row:
+    sc = load_scenario("single_pass", {"row.n_trees": 2, "camera.rate_hz": 15, "masks_every": 0})
+    rig = Rig.build(sc, seed)
     scene, intr = rig.scene, rig.intrinsics
-    path = rig.path("front", np.random.default_rng(SEED))
-    rng = np.random.default_rng([SEED, 2])
+    path = rig.path("front", np.random.default_rng(seed))
+    rng = np.random.default_rng([seed, 2])
     frames = []
     for i, (stamp, T) in enumerate(zip(path.stamps, path.poses)):
         color, _, _ = rig.shoot(T, rng)
@@ -129,7 +131,8 @@ def test_starts_from_two_views_with_a_unit_baseline_and_places_every_frame(row):
     assert all(k.keypoint_depth.size == 0 or not k.keypoint_depth.any() for k in fe.keyframes)
 
 
-def test_trajectory_after_rgb_bundle_adjustment_within_ate_goal(row):
+@pytest.mark.accuracy
+def test_trajectory_after_rgb_bundle_adjustment_within_ate_goal(row, accuracy):
     true = row.kf_truth()[:, :3, 3]
     ate_fe = _ate(np.array([k.T_odom_cam for k in row.fe.keyframes])[:, :3, 3], true)
     ate_ba = _ate(row.ba.poses[:, :3, 3], true)
@@ -138,11 +141,12 @@ def test_trajectory_after_rgb_bundle_adjustment_within_ate_goal(row):
     print(f"\nATE (similarity fit, path {row.path_length_m:.2f} m): front-end keyframes {1000 * ate_fe:.1f} mm "
           f"({pct(ate_fe):.3f} %), all frames {1000 * ate_frames:.1f} mm ({pct(ate_frames):.3f} %), "
           f"after BA {1000 * ate_ba:.1f} mm ({pct(ate_ba):.3f} %)")
-    assert pct(ate_ba) <= ATE_MAX_PERCENT
-    assert pct(ate_frames) <= 2 * ATE_MAX_PERCENT
+    accuracy.at_most("keyframe ATE after RGB BA, % of path", pct(ate_ba), ATE_MAX_PERCENT)
+    accuracy.at_most("front-end ATE of all frames, % of path", pct(ate_frames), 2 * ATE_MAX_PERCENT)
 
 
-def test_scale_is_consistent_along_the_path(row):
+@pytest.mark.accuracy
+def test_scale_is_consistent_along_the_path(row, accuracy):
     true = row.kf_truth()[:, :3, 3]
     est = row.ba.poses[:, :3, 3]
     n = len(est) // 2
@@ -151,10 +155,11 @@ def test_scale_is_consistent_along_the_path(row):
     s = umeyama(est, true, with_scale=True).s
     print(f"\nscale (m per map unit): whole path {s:.4f}, first half {s1:.4f}, second half {s2:.4f} "
           f"({100 * abs(s1 / s2 - 1):.2f} % apart)")
-    assert abs(s1 / s2 - 1) <= SCALE_HALVES_MAX
+    accuracy.at_most("scale of the two halves, relative difference", abs(s1 / s2 - 1), SCALE_HALVES_MAX)
 
 
-def test_landmarks_lie_on_the_true_surfaces(row):
+@pytest.mark.accuracy
+def test_landmarks_lie_on_the_true_surfaces(row, accuracy):
     s, R, t = _similarity_from_poses(row.ba.poses, row.kf_truth())
     lm = row.ba.landmarks[np.isfinite(row.ba.landmarks).all(axis=1)]
     assert len(lm) > 0.9 * len(row.ba.landmarks)
@@ -164,14 +169,16 @@ def test_landmarks_lie_on_the_true_surfaces(row):
     print(f"\nlandmarks after BA, scaled: {len(pts)}, median distance to the true surfaces "
           f"{1000 * np.median(dist):.1f} mm; within 2 m of the path ({near.sum()}): "
           f"{1000 * np.median(dist[near]):.1f} mm")
-    assert np.median(dist) <= LANDMARK_MEDIAN_MAX_M
-    assert near.sum() > 500 and np.median(dist[near]) <= LANDMARK_NEAR_MEDIAN_MAX_M
+    accuracy.at_most("landmark median distance to the surfaces, m", np.median(dist), LANDMARK_MEDIAN_MAX_M)
+    assert near.sum() > 500
+    accuracy.at_most("... within 2 m of the path, m", np.median(dist[near]), LANDMARK_NEAR_MEDIAN_MAX_M)
 
 
 # --- losses and failures ------------------------------------------------------------------------------
 
 
-def test_blank_frames_are_reported_and_tracking_recovers(row):
+@pytest.mark.accuracy
+def test_blank_frames_are_reported_and_tracking_recovers(row, accuracy):
     frames = [RGBDFrame(f.stamp, np.full_like(f.color, 90), None, f.intrinsics, f.side, f.index) if f.index in BLANK
               else f for f in row.frames]
     res, _ = _run(frames, row.intr)
@@ -183,7 +190,7 @@ def test_blank_frames_are_reported_and_tracking_recovers(row):
     ate = _ate(res.frame_poses[placed, :3, 3], row.truth[placed, :3, 3])
     print(f"\nblank frames {BLANK.start}-{BLANK.stop - 1}: events {res.events[1:]}; "
           f"front-end ATE of the placed frames {100 * ate / row.path_length_m:.3f} % of the path")
-    assert 100 * ate / row.path_length_m <= 2 * ATE_MAX_PERCENT
+    accuracy.at_most("front-end ATE across the gap, % of path", 100 * ate / row.path_length_m, 2 * ATE_MAX_PERCENT)
 
 
 def test_no_motion_or_no_texture_never_initialises_and_says_so(row):
@@ -207,7 +214,7 @@ def test_depth_is_ignored_and_the_rgbd_front_end_still_needs_it(row):
 
 
 def test_pipeline_front_end_uses_the_colour_only_front_end_in_rgb_mode(row):
-    cfg = load_config(overrides={"input": {"mode": "rgb"}, "odometry": {"klt_window_px": 15}})
+    cfg = load_config(overrides={"input": {"mode": "rgb"}})
     res = front_end(iter(row.frames[:40]), row.intr, cfg, None, "front", 40)
     assert len(res.keyframes) >= 2 and len(res.observations) and not res.observations.depth.any()
     assert np.linalg.norm(res.keyframes[1].T_odom_cam[:3, 3]) == pytest.approx(1.0)  # up to scale: unit baseline
