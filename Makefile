@@ -22,7 +22,7 @@ SETUP_INPUTS := requirements.lock setup.py setup.cfg package.xml \
                 scripts/setup.sh cmake/fix_wheel_includes.cmake \
                 $(shell find orchard_mapping_msgs -type f 2>/dev/null)
 
-.PHONY: setup test demo bench clean
+.PHONY: setup test test-portable demo bench fixtures clean
 
 setup: $(STAMP)
 
@@ -36,6 +36,10 @@ test: setup
 	@rc=0; $(PY) -m pytest test -q -ra --timeout=1800 -p no:dash $(PYTEST_ARGS) || rc=$$?; \
 	if [ $$rc -eq 5 ]; then echo "make test: pytest collected no tests (exit 5)" >&2; fi; \
 	exit $$rc
+
+# The fixture recordings in bags/: the commands in bags/README.md, run again.
+fixtures: setup
+	grep '^orchard-map simulate ' bags/README.md | while read -r cmd; do $(VENV)/bin/$$cmd; done
 
 # The furthest stage that exists: simulate a row, read it back, reconstruct each side, evaluate.
 demo: setup

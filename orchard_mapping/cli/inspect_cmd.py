@@ -48,7 +48,7 @@ def bag_table(path: Path) -> tuple[Table, Table]:
         stats.add_row("depth median / 95th pct", f"{np.median(med):.2f} m / {np.median(p95):.2f} m")
     labels = sorted({s for s in seq.sides if s})
     if labels:
-        stats.add_row("side labels", ", ".join(f"{s}: {int(np.sum(seq.sides == s))}" for s in labels))
+        stats.add_row("side labels", ", ".join(f"{s}: {seq.sides.count(s)}" for s in labels))
     return topics, stats
 
 

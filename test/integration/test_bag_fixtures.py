@@ -84,7 +84,7 @@ def test_fixture_reads_like_a_recording_and_agrees_with_its_truth(name):
                 assert f.depth is not None and f.color.shape == (intr.height, intr.width, 3)
                 residuals += _trunk_depth_residuals(f.depth, T, gt, dh, intr)
     r = np.array(residuals)  # m: measured - expected depth at the trunk axis pixel, diameter height
-    assert len(r) >= 10, f"{name}: trunks seen at the diameter height in only {len(r)} frames"
+    assert len(r) >= 5, f"{name}: trunks seen at the diameter height in only {len(r)} frames"
     # The sensor's depth sd is 0.004 z^2 (~6 mm at 1.25 m): the trunk pixels agree with the truth's trunks.
     assert np.median(np.abs(r)) < 0.01, (name, np.median(np.abs(r)))
     assert np.mean(np.abs(r) < 0.03) > 0.8, (name, np.mean(np.abs(r) < 0.03))
@@ -154,3 +154,13 @@ def _assert_same_json(a, b, where: str) -> None:
         assert b == pytest.approx(a, rel=1e-6, abs=1e-6), where
     else:
         assert a == b, where
+
+
+def test_inspect_counts_the_frames_of_each_side_in_the_single_bag_drive():
+    fixture = BAGS / "loop_2trees"
+    gt = load_ground_truth(fixture / "ground_truth.json")
+    res = CliRunner().invoke(app, ["inspect", str(fixture / "loop")])
+    assert res.exit_code == 0, res.output
+    n = {side: len(gt.sides[side].trajectory.stamps) for side in ("front", "back")}
+    assert n["front"] > 0 and n["back"] > 0
+    assert f"back: {n['back']}, front: {n['front']}" in res.output, res.output
