@@ -37,6 +37,11 @@ test: setup
 	if [ $$rc -eq 5 ]; then echo "make test: pytest collected no tests (exit 5)" >&2; fi; \
 	exit $$rc
 
+# The accuracy tests again with OpenCV's optimised paths off, on one thread, and on two other seeds
+# (test/conftest.py); prints one table (build/accuracy_table.md) and fails on a check within 20 % of its limit.
+test-portable: setup
+	bash scripts/test_portable.sh $(PYTEST_ARGS)
+
 # The fixture recordings in bags/: the commands in bags/README.md, run again.
 fixtures: setup
 	grep '^orchard-map simulate ' bags/README.md | while read -r cmd; do $(VENV)/bin/$$cmd; done

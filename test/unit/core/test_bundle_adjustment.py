@@ -65,7 +65,7 @@ def _drift(truth: np.ndarray, rng: np.random.Generator, *, scale=1.01, yaw_deg_p
 
 
 def make_side(seed: int = 0, n_kf: int = 60, n_points: int = 900, keep_prob: float = 0.45,
-              outlier_frac: float = 0.0) -> Side:
+              outlier_frac: float = 0.0, yaw_deg_per_m: float = 0.05) -> Side:
     rng = np.random.default_rng(seed)
     # Truth: sideways along x at 10 cm per keyframe, small wobble in height, depth and heading.
     x = 0.1 * np.arange(n_kf)
@@ -74,7 +74,7 @@ def make_side(seed: int = 0, n_kf: int = 60, n_points: int = 900, keep_prob: flo
     t = np.stack([x, 0.02 * np.sin(x), 0.03 * np.sin(0.7 * x)], axis=1)
     t[0] = 0.0
     truth = np.stack([_pose(wob[k], t[k]) for k in range(n_kf)])
-    drifted = _drift(truth, rng)
+    drifted = _drift(truth, rng, yaw_deg_per_m=yaw_deg_per_m)
 
     # Landmarks: 60 % on the row (1.25 m +- 0.25), 30 % over 0.2-5 m, 10 % background at 6-10 m.
     kind = rng.choice(3, n_points, p=[0.6, 0.3, 0.1])
@@ -125,14 +125,17 @@ def ate(est: np.ndarray, truth: np.ndarray, with_scale: bool = False) -> float:
     return float(np.sqrt(np.mean(np.sum((aligned - truth[:, :3, 3]) ** 2, axis=1))))
 
 
-@pytest.fixture(scope="module")
-def side() -> Side:
-    return make_side(seed=1)
+pytestmark = pytest.mark.accuracy
 
 
 @pytest.fixture(scope="module")
-def side_outliers() -> Side:
-    return make_side(seed=2, outlier_frac=0.04)
+def side(seed_offset) -> Side:
+    return make_side(seed=1 + 10 * seed_offset)
+
+
+@pytest.fixture(scope="module")
+def side_outliers(seed_offset) -> Side:
+    return make_side(seed=2 + 10 * seed_offset, outlier_frac=0.04)
 
 
 @pytest.fixture(scope="module")
@@ -155,15 +158,15 @@ def test_synthetic_side_is_orchard_like(side):
     assert 0.03 < end_err < 0.12
 
 
-def test_rgbd_ba_removes_drift(side, rgbd_result):
+def test_rgbd_ba_removes_drift(side, rgbd_result, accuracy):
     res, seconds = rgbd_result
     path = path_length(side.truth[:, :3, 3])
     ate0, ate1 = ate(side.drifted, side.truth), ate(res.poses, side.truth)
     print(f"\nRGB-D BA: {len(side.truth)} keyframes, {len(side.obs)} observations, "
           f"{res.n_landmarks_used} landmarks, {res.n_factors} factors, {res.iterations} iterations, "
           f"{seconds:.2f} s (BAResult.seconds {res.seconds:.2f}); ATE {ate0 * 1e3:.2f} -> {ate1 * 1e3:.2f} mm")
-    assert ate1 * 5 <= ate0
-    assert ate1 < 0.001 * path
+    accuracy.at_least("ATE drifted / after RGB-D BA", ate0 / ate1, 5)
+    accuracy.at_most("ATE after RGB-D BA, fraction of path", ate1 / path, 0.001)
     assert res.final_error < res.initial_error
     # keyframe 0 is the gauge: it stays put
     np.testing.assert_allclose(res.poses[0], side.drifted[0], atol=1e-6)
@@ -171,7 +174,8 @@ def test_rgbd_ba_removes_drift(side, rgbd_result):
     ok = np.all(np.isfinite(res.landmarks), axis=1)
     assert ok.sum() == res.n_landmarks_used
     near = ok & (side.points[:, 2] < 5.0)
-    assert np.median(np.linalg.norm(res.landmarks[near] - side.points[near], axis=1)) < 0.01
+    accuracy.at_most("landmark median error after RGB-D BA, m",
+                     np.median(np.linalg.norm(res.landmarks[near] - side.points[near], axis=1)), 0.01)
 
 
 def test_rgbd_ba_result_shapes(side, rgbd_result):
@@ -186,7 +190,7 @@ def test_rgbd_ba_result_shapes(side, rgbd_result):
     assert res.n_factors == int(np.sum(~skipped[side.obs.landmark])) + 1  # + gauge prior
 
 
-def test_huber_keeps_ba_accurate_with_outliers(side_outliers):
+def test_huber_keeps_ba_accurate_with_outliers(side_outliers, accuracy):
     s = side_outliers
     assert 0.02 < s.outlier.mean() < 0.06
     path = path_length(s.truth[:, :3, 3])
@@ -195,8 +199,8 @@ def test_huber_keeps_ba_accurate_with_outliers(side_outliers):
     ate0, ate_r, ate_p = ate(s.drifted, s.truth), ate(robust.poses, s.truth), ate(plain.poses, s.truth)
     print(f"\noutliers {s.outlier.mean():.1%}: ATE drifted {ate0 * 1e3:.2f} mm, Huber {ate_r * 1e3:.2f} mm, "
           f"least squares {ate_p * 1e3:.2f} mm")
-    assert ate_r * 5 <= ate0
-    assert ate_r < 0.001 * path
+    accuracy.at_least("ATE drifted / after robust BA with outliers", ate0 / ate_r, 5)
+    accuracy.at_most("ATE after robust BA with outliers, fraction of path", ate_r / path, 0.001)
     assert ate_r < ate_p
 
 
@@ -222,14 +226,23 @@ def test_keyframe_without_observations_is_bridged(caplog):
 # --------------------------------------------------------------------- RGB BA
 
 
-def test_rgb_only_ba_reduces_sim3_ate(side):
+@pytest.fixture(scope="module")
+def side_yaw_drift(seed_offset) -> Side:
+    """The planted drift of `side` (1 % scale, 0.05 deg/m yaw) is nearly all scale, which the sim(3) alignment
+    of a colour-only map removes: what is left sits near the noise floor (measured: BA improved on it only
+    2.3-3.8x over four seeds, a ratio of floors). A colour-only front end drifts in yaw too: 0.3 deg/m."""
+    return make_side(seed=3 + 10 * seed_offset, yaw_deg_per_m=0.3)
+
+
+def test_rgb_only_ba_reduces_sim3_ate(side_yaw_drift, accuracy):
+    side = side_yaw_drift
     rgb_obs = replace(side.obs, depth=np.zeros_like(side.obs.depth))
     res = bundle_adjust(side.drifted, side.init_points, rgb_obs, INTR, mode="rgb", pixel_sigma=0.5)
     ate0 = ate(side.drifted, side.truth, with_scale=True)
     ate1 = ate(res.poses, side.truth, with_scale=True)
     print(f"\nRGB-only BA: sim(3) ATE {ate0 * 1e3:.2f} -> {ate1 * 1e3:.2f} mm in {res.iterations} iterations")
-    assert ate1 * 2 <= ate0
-    assert ate1 < 0.001 * path_length(side.truth[:, :3, 3])
+    accuracy.at_least("sim(3) ATE drifted / after RGB-only BA", ate0 / ate1, 2)
+    accuracy.at_most("sim(3) ATE after RGB-only BA, fraction of path", ate1 / path_length(side.truth[:, :3, 3]), 0.001)
     assert res.final_error < res.initial_error
     # the scale gauge: the distance keyframe 0 -> farthest keyframe is held
     d0 = np.linalg.norm(side.drifted[-1, :3, 3] - side.drifted[0, :3, 3])
@@ -238,6 +251,17 @@ def test_rgb_only_ba_reduces_sim3_ate(side):
     # depth is ignored in RGB mode: the same call with depth gives the same answer
     res_d = bundle_adjust(side.drifted, side.init_points, side.obs, INTR, mode="rgb", pixel_sigma=0.5)
     np.testing.assert_allclose(res_d.poses, res.poses, atol=1e-9)
+
+
+def test_rgb_only_ba_holds_the_distance_to_the_chosen_scale_anchor(side):
+    """scale_anchor: the keyframe whose distance to keyframe 0 is the scale gauge (the colour-only front end's
+    re-entry BA holds the keyframes before a gap this way); other distances are free."""
+    rgb_obs = replace(side.obs, depth=np.zeros_like(side.obs.depth))
+    res = bundle_adjust(side.drifted, side.init_points, rgb_obs, INTR, mode="rgb", pixel_sigma=0.5, scale_anchor=20)
+    d0 = np.linalg.norm(side.drifted[20, :3, 3] - side.drifted[0, :3, 3])
+    assert np.linalg.norm(res.poses[20, :3, 3] - res.poses[0, :3, 3]) == pytest.approx(d0, rel=1e-4)
+    with pytest.raises(ReconstructionError, match="scale_anchor"):
+        bundle_adjust(side.drifted, side.init_points, rgb_obs, INTR, mode="rgb", scale_anchor=0)
 
 
 # ----------------------------------------------------------------- pose graph

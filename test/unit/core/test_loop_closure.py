@@ -68,15 +68,19 @@ def keyframe(kf_id: int, stamp: float, T: np.ndarray, gray: np.ndarray,
     return Keyframe(kf_id, kf_id, stamp, T, uv, des, z, np.full(len(uv), -1, np.int64)), dt
 
 
+pytestmark = pytest.mark.accuracy
+
+
 @pytest.fixture(scope="module")
-def row() -> Row:
+def row(seed_offset) -> Row:
     from orchard_mapping.sim.scenario import load_scenario
     from orchard_mapping.sim.simulate import Rig
 
     sc = load_scenario("standard", {"row.n_trees": 4})
-    rig = Rig.build(sc, SEED)
+    seed = SEED + seed_offset
+    rig = Rig.build(sc, seed)
     scene, K = rig.scene, rig.intrinsics
-    path = rig.path("front", np.random.default_rng([SEED, 1]))
+    path = rig.path("front", np.random.default_rng([seed, 1]))
     x, y, z = path.poses[:, 0, 3], path.poses[:, 1, 3], path.poses[:, 2, 3]
     height = z - scene.terrain.height(x, y)  # camera above the ground
     level = np.flatnonzero(height < 1.5 * sc.path.low_height_m)
@@ -106,7 +110,7 @@ def row() -> Row:
     views[REVISIT_1] = (20.0, moved(views[TREE_1][1], 11))
     views[REVISIT_3] = (21.0, moved(views[TREE_3][1], 12))
 
-    rng = np.random.default_rng([SEED, 2])
+    rng = np.random.default_rng([seed, 2])
     kfs, depth_true, feature_s = {}, {}, {}
     for kf_id, (stamp, T) in views.items():
         color, depth, out = rig.shoot(T, rng)
@@ -120,7 +124,7 @@ def _unit(v: np.ndarray) -> np.ndarray:
     return v / np.linalg.norm(v)
 
 
-def test_features_and_keypoint_depth(row):
+def test_features_and_keypoint_depth(row, accuracy):
     """1000 ORB features per view; keypoint depth is kept away from depth edges and matches the true depth."""
     for kf_id, kf in row.kfs.items():
         print(f"keyframe {kf_id}: {len(kf.keypoints)} features in {1000 * row.feature_s[kf_id]:.0f} ms, "
@@ -128,17 +132,17 @@ def test_features_and_keypoint_depth(row):
         assert kf.keypoints.shape == (len(kf.descriptors), 2) and kf.descriptors.shape[1] == 32
         assert kf.descriptors.dtype == np.uint8 and kf.keypoint_depth.dtype == np.float32
         assert len(kf.keypoints) >= 900
-        assert np.mean(kf.keypoint_depth > 0) > 0.5
+        accuracy.at_least(f"keyframe {kf_id}: share of features with depth", np.mean(kf.keypoint_depth > 0), 0.5)
         has = kf.keypoint_depth > 0
         px = np.rint(kf.keypoints[has]).astype(int)
         z_true = row.depth_true[kf_id][px[:, 1], px[:, 0]]
         z = kf.keypoint_depth[has]
         # Sensor noise sd = 0.004 z^2; edge pixels (flying, mixed) must be gone: <= 3 % beyond 4 sd + 1 cm.
         gross = np.abs(z - z_true) > 4 * 0.004 * z_true**2 + 0.01
-        assert np.mean(gross) < 0.03
+        accuracy.at_most(f"keyframe {kf_id}: share of gross keypoint depths", np.mean(gross), 0.03)
 
 
-def test_revisit_is_verified_with_accurate_pose(row):
+def test_revisit_is_verified_with_accurate_pose(row, accuracy):
     """The same spot seen 20 s later (3 cm, 1.5 deg apart) verifies, and T_a_b is within 1 cm / 0.5 deg."""
     verifier = PairVerifier(row.intrinsics)
     for a, b in ((TREE_1, REVISIT_1), (TREE_3, REVISIT_3)):
@@ -149,21 +153,23 @@ def test_revisit_is_verified_with_accurate_pose(row):
         print(f"verify ({a}, {b}): {v.reason}, {v.inliers}/{v.matches} good, sd {1000 * v.sigma_m:.1f} mm, "
               f"error {1000 * err_t:.1f} mm / {err_r:.3f} deg, {1000 * dt:.0f} ms")
         assert v.accepted, v.reason
-        assert v.inliers >= 100
-        assert err_t < 0.01 and err_r < 0.5
+        accuracy.at_least(f"revisit ({a}, {b}) inliers", v.inliers, 100)
+        accuracy.at_most(f"revisit ({a}, {b}) translation error, m", err_t, 0.01)
+        accuracy.at_most(f"revisit ({a}, {b}) rotation error, deg", err_r, 0.5)
         loop = verifier.verify(row.kfs[a], row.kfs[b], score=0.3)
         assert loop is not None and (loop.kf_a, loop.kf_b) == (a, b) and loop.score == 0.3
         np.testing.assert_allclose(loop.T_a_b, v.T_a_b)
 
 
-def test_reverse_pair_gives_inverse_transform(row):
+def test_reverse_pair_gives_inverse_transform(row, accuracy):
     """verify(b, a) estimates T_b_a = inv(T_a_b)."""
     verifier = PairVerifier(row.intrinsics)
     ab = verifier.verify(row.kfs[TREE_1], row.kfs[REVISIT_1])
     ba = verifier.verify(row.kfs[REVISIT_1], row.kfs[TREE_1])
     assert ab is not None and ba is not None
     err_t, err_r = pose_error(ba.T_a_b @ ab.T_a_b, np.eye(4))
-    assert err_t < 0.005 and err_r < 0.2
+    accuracy.at_most("T_b_a T_a_b translation from identity, m", err_t, 0.005)
+    accuracy.at_most("T_b_a T_a_b rotation from identity, deg", err_r, 0.2)
 
 
 @pytest.mark.parametrize("a, b", [(TREE_1, TREE_3), (TREE_1, TREE_2), (REVISIT_1, TREE_3), (TREE_3, REVISIT_1)])
@@ -196,7 +202,7 @@ def test_implausible_motion_is_rejected(row):
     assert not v.accepted and "rotation" in v.reason
 
 
-def test_detect_all_finds_revisits_only(row):
+def test_detect_all_finds_revisits_only(row, accuracy):
     """The score matrix proposes the revisits; they verify; nothing else is reported."""
     detector = LoopDetector(row.intrinsics)
     t = time.perf_counter()
@@ -218,7 +224,8 @@ def test_detect_all_finds_revisits_only(row):
     for (a, b), lp in found.items():
         assert b in (REVISIT_1, REVISIT_3)  # only revisits, never tree 1 vs tree 3 or level vs consecutive
         err_t, err_r = pose_error(lp.T_a_b, row.T_true(a, b))
-        assert err_t < 0.02 and err_r < 0.5, (a, b, err_t, err_r)
+        accuracy.at_most(f"loop ({a}, {b}) translation error, m", err_t, 0.02)
+        accuracy.at_most(f"loop ({a}, {b}) rotation error, deg", err_r, 0.5)
     for a, b in ((TREE_1, REVISIT_1), (TREE_3, REVISIT_3)):
         err_t, err_r = pose_error(found[a, b].T_a_b, row.T_true(a, b))
         assert err_t < 0.01 and err_r < 0.5
