@@ -426,6 +426,31 @@ def test_mcap_library_decodes_our_file(tmp_path: Path) -> None:
     np.testing.assert_array_equal(np.asarray(img.data).reshape(H, W, 3), rgb)
 
 
+def test_compressed_bag_reads_back_the_same_and_is_smaller(tmp_path: Path) -> None:
+    """compress=True: zstd chunks inside the MCAP file; read_rgbd and the `mcap` package read it as before."""
+    from mcap.reader import make_reader
+
+    smooth = np.tile(np.arange(W, dtype=np.uint8)[None, :, None], (H, 1, 3))  # compressible, like real images
+    depth = np.full((H, W), 1.5)
+    for name, compress in (("plain", False), ("zstd", True)):
+        with BagWriter(tmp_path / name, compress=compress) as bag:
+            bag.write_camera_info(T.camera_info, 0.0, INTR)
+            for i in range(5):
+                bag.write_color(T.color, 1.0 + 0.1 * i, smooth)
+                bag.write_depth(T.depth, 1.0 + 0.1 * i, depth)
+    sizes = {name: next((tmp_path / name).glob("*.mcap")).stat().st_size for name in ("plain", "zstd")}
+    assert sizes["zstd"] < 0.5 * sizes["plain"], sizes
+    frames = list(read_rgbd(tmp_path / "zstd"))
+    assert len(frames) == 5
+    for f in frames:
+        np.testing.assert_array_equal(f.color, smooth)
+        np.testing.assert_allclose(f.depth, 1.5, atol=5e-4)
+    with next((tmp_path / "zstd").glob("*.mcap")).open("rb") as fh:
+        reader = make_reader(fh)
+        assert sum(1 for _ in reader.iter_messages()) == 11
+        assert {c.compression for c in reader.get_summary().chunk_indexes} == {"zstd"}
+
+
 # --------------------------------------------------------------------------- atomic writer
 
 
