@@ -20,6 +20,7 @@ fit). The baseline is scored at our keyframe stamps, so both are measured over t
 span; its all-frame numbers are in the JSON too.
 
     python benchmarks/single_side.py --quick                      # 2 trees, standard: smoke run
+    python benchmarks/single_side.py --matrix [--quick] [--trees 10]  # every scenario at 15/30 Hz (+10 Hz)
     python benchmarks/single_side.py --trees 10 30 --scenarios standard wind [--rate 15] [--seed 0]
         [--workdir DIR] [--reuse] [--baseline point_to_plane hybrid] [--json results.json]
 
@@ -63,7 +64,11 @@ from orchard_mapping.sim.scenario import load_scenario
 from orchard_mapping.sim.simulate import simulate
 
 SIDES = ("front", "back")
+FRONT_ENDS: list[Any] = []  # the front ends of the last pipeline run (timed_track)
 console = Console(width=150)
+# --matrix: every scenario in config/scenarios/ at 15 and 30 Hz, plus these at 10 Hz (the hand-held issue).
+MATRIX_RATES = (15.0, 30.0)
+MATRIX_10HZ = ("standard", "tilted")
 
 
 # ------------------------------------------------------------------------------------------ helpers
@@ -71,13 +76,17 @@ console = Console(width=150)
 
 @contextmanager
 def timed_track() -> Iterator[dict[int, list[tuple[float, bool]]]]:
-    """Wrap RGBDFrontEnd.track: per front-end instance (in order of creation) (seconds, placed) per frame."""
+    """Wrap RGBDFrontEnd.track: per front-end instance (in order of creation) (seconds, placed) per frame.
+    The instances themselves are in FRONT_ENDS (same order), for their events and counters."""
     calls: dict[int, list[tuple[float, bool]]] = {}
+    FRONT_ENDS.clear()
     original = odometry_module.RGBDFrontEnd.track
 
     def track(self, frame):  # type: ignore[no-untyped-def]
         t0 = time.perf_counter()
         pose = original(self, frame)
+        if id(self) not in calls:
+            FRONT_ENDS.append(self)
         calls.setdefault(id(self), []).append((time.perf_counter() - t0, bool(np.isfinite(pose).all())))
         return pose
 
@@ -140,11 +149,15 @@ def run_ours(sim_dir: Path, res_dir: Path, cfg: OrchardConfig) -> dict[str, Any]
     console.log("running the pipeline (both sides)")
     t0 = time.perf_counter()
     with timed_track() as calls:
-        rr = pipeline.run(sim_dir / "front", sim_dir / "back", res_dir, cfg)
+        if (sim_dir / "loop").is_dir():  # one bag round the row, frames labelled by side
+            rr = pipeline.run(sim_dir / "loop", None, res_dir, cfg)
+        else:
+            rr = pipeline.run(sim_dir / "front", sim_dir / "back", res_dir, cfg)
     wall = time.perf_counter() - t0
     report = evaluate_result(sim_dir / "ground_truth.json", res_dir).to_dict()
     stages = dict(rr.timings.stages)
     per_side_calls = dict(zip(SIDES, calls.values()))
+    per_side_fe = dict(zip(SIDES, FRONT_ENDS))
     out: dict[str, Any] = {"wall_s": wall, "stages_s": stages, "realtime_factor": (report.get("timings") or {}).get(
         "realtime_factor"), "sides": {}}
     for side in SIDES:
@@ -163,6 +176,11 @@ def run_ours(sim_dir: Path, res_dir: Path, cfg: OrchardConfig) -> dict[str, Any]
             "keyframe_stamps": sm.keyframe_stamps.tolist(),
             "frames": n_frames,
             "frames_unplaced": sum(1 for _, ok in track if not ok),
+            "lost_frames": getattr(per_side_fe.get(side), "lost_frames", None),
+            "relocalisations": sum("relocalised" in e or "recovered" in e for e in
+                                   getattr(per_side_fe.get(side), "events", [])),
+            "restarts": sum("restarted" in e for e in getattr(per_side_fe.get(side), "events", [])),
+            "retracked_frames": getattr(per_side_fe.get(side), "retracked_frames", None),
             "loops": len(sm.loops),
             "track_ms_median": _median_ms([s for s, _ in track]),
             "track_ms_p90": 1000.0 * float(np.percentile([s for s, _ in track], 90)) if track else None,
@@ -276,6 +294,25 @@ def case_table(case: dict[str, Any]) -> Table:
 SHORT = {"point_to_plane": "p2p", "hybrid": "hybrid", "intensity": "intensity"}
 
 
+def matrix_table(cases: list[dict[str, Any]]) -> Table:
+    """One row per case and side: accuracy after BA, losses, relocalisations, speed."""
+    t = Table(title="Single-side reconstruction per scenario and rate (after loops + BA; front end alone in "
+                    "brackets)", title_justify="left")
+    for col in ("scenario", "Hz", "trees", "side", "drift %", "ATE %", "lost", "reloc", "restart", "retracked",
+                "ms/frame", "RTF"):
+        t.add_column(col, justify="left" if col in ("scenario", "side") else "right", no_wrap=True)
+    for c in cases:
+        for side in SIDES:
+            s = c["ours"]["sides"][side]
+            od = s["odometry"]
+            t.add_row(c["scenario"], f"{c['rate_hz']:g}", str(c["trees"]), side,
+                      f"{_f(s['drift_percent'])} ({_f(od['drift_percent'])})",
+                      f"{_f(s['ate_percent'])} ({_f(od['ate_percent'])})",
+                      str(s["lost_frames"]), str(s["relocalisations"]), str(s["restarts"]),
+                      str(s["retracked_frames"]), _f(s["track_ms_median"], 1), _f(s["realtime_factor"], 2))
+    return t
+
+
 def summary_table(cases: list[dict[str, Any]]) -> Table:
     methods = list(cases[0]["baselines"])
     t = Table(title="Summary: drift % / ATE % per side; ratio = ours / Open3D (< 1: ours better); "
@@ -309,14 +346,34 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--seed", type=int, default=0)
     ap.add_argument("--workdir", type=Path, default=Path(tempfile.gettempdir()) / "orchard_single_side")
     ap.add_argument("--reuse", action="store_true", help="skip simulating when the case folder holds a simulation")
-    ap.add_argument("--baseline", nargs="+", default=["point_to_plane", "hybrid"],
+    ap.add_argument("--baseline", nargs="+", default=None,
                     choices=["point_to_plane", "hybrid", "intensity"], help="Open3D odometry method(s)")
-    ap.add_argument("--quick", action="store_true", help="smoke run: 2 trees, standard scenario only")
+    ap.add_argument("--quick", action="store_true",
+                    help="smoke run: 2 trees, standard scenario only (with --matrix: 3 trees, standard, tilted, "
+                         "handheld_walk and vehicle at 15 Hz, and tilted at 10 Hz)")
+    ap.add_argument("--matrix", action="store_true",
+                    help="every scenario in config/scenarios/ at 15 and 30 Hz, standard and tilted also at 10 Hz "
+                         "(10 trees unless --trees); one table with losses and relocalisations; no baseline unless "
+                         "--baseline is given")
     ap.add_argument("--json", type=Path, default=None, help="write every number to this JSON file")
     ap.add_argument("--verbose", "-v", action="store_true", help="show the pipeline's warnings (relocalisations, ...)")
     args = ap.parse_args(argv)
-    if args.quick:
-        args.trees, args.scenarios = [2], ["standard"]
+    trees_given = args.trees != ap.get_default("trees")
+    if args.matrix:
+        from orchard_mapping.sim.scenario import list_scenarios
+
+        args.baseline = args.baseline or []
+        if args.quick:
+            runs = [(sc, 15.0) for sc in ("standard", "tilted", "handheld_walk", "vehicle")] + [("tilted", 10.0)]
+            args.trees = args.trees if trees_given else [3]
+        else:
+            runs = [(sc, r) for sc in list_scenarios() for r in MATRIX_RATES] + [(sc, 10.0) for sc in MATRIX_10HZ]
+            args.trees = args.trees if trees_given else [10]
+    else:
+        args.baseline = args.baseline if args.baseline is not None else ["point_to_plane", "hybrid"]
+        if args.quick:
+            args.trees, args.scenarios = [2], ["standard"]
+        runs = [(sc, args.rate) for sc in args.scenarios]
     logging.basicConfig(level=logging.WARNING, handlers=[RichHandler(console=console, show_path=False)],
                         format="%(name)s: %(message)s")
     if not args.verbose:  # the front end logs every relocalisation as a warning: too many for a table run
@@ -324,15 +381,17 @@ def main(argv: list[str] | None = None) -> int:
     args.workdir.mkdir(parents=True, exist_ok=True)
     cases = []
     t0 = time.perf_counter()
-    for scenario in args.scenarios:
+    for scenario, rate in runs:
         for trees in args.trees:
-            case = run_case(scenario, trees, args.rate, args.seed, args.workdir, args.reuse, args.baseline)
+            case = run_case(scenario, trees, rate, args.seed, args.workdir, args.reuse, args.baseline)
             cases.append(case)
             console.print(case_table(case))
             if args.json:  # after every case, so a long run keeps what it has
                 args.json.write_text(json.dumps({"cases": cases}, indent=1))
     console.rule("summary")
-    console.print(summary_table(cases))
+    console.print(matrix_table(cases))
+    if args.baseline:
+        console.print(summary_table(cases))
     console.print("ms/frame: ours = median RGBDFrontEnd.track call (in brackets: front_end stage / frames, "
                   "with bag decoding); Open3D = median odometry call per frame pair. RTF = processing s / "
                   "recording s of that side (ours: front end + loops + pose graph + BA + fusion). Baseline "

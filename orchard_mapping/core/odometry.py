@@ -71,6 +71,12 @@ class FrontEndParams:
     # max_corners is free: lost tracks are replaced in batches instead of one by one every frame.
     min_free_corner_fraction: float = 0.1
     restart_after_frames: int = 5  # lost this long with texture in view: restart at the extrapolated pose
+    # Hand-held motion: when fewer than retrack_inlier_ratio of the live tracks survive KLT + PnP, the
+    # frame is tracked again coarse to fine (a deeper pyramid and larger window from the constant- and the
+    # zero-velocity guess, then the fine KLT from that pose). Steady motion never pays for it.
+    retrack_inlier_ratio: float = 0.5
+    retrack_levels: int = 4
+    retrack_window_px: int = 21
 
 
 def backproject(uv: np.ndarray, z: np.ndarray, intr: CameraIntrinsics) -> np.ndarray:
@@ -140,6 +146,7 @@ class RGBDFrontEnd:
         self.poses: list[np.ndarray] = []
         self.events: list[str] = []
         self.lost_frames = 0
+        self.retracked_frames = 0  # frames tracked again coarse to fine (see retrack_inlier_ratio)
         self._lost_streak = 0
         self._velocity = np.eye(4)  # last inter-frame motion, for extrapolating through lost stretches
 
@@ -210,27 +217,65 @@ class RGBDFrontEnd:
             return None
         # Constant-velocity prediction of where the tracked landmarks land: KLT starts there, so fast
         # motion (1 m/s, or a low frame rate) does not exceed the pyramid's capture range.
-        tracked = self._klt(gray, self._pts, self._predict(self.landmarks[self._ids]))
-        if tracked is None:
+        X = self.landmarks[self._ids]
+        guess = self._predict(X)
+        best = self._track_from(gray, X, guess)
+        if best is None or best[1].size < self.p.retrack_inlier_ratio * len(self._ids):
+            # The prediction was far off (a jerk of the hand, a re-aim, a bump): the fine KLT lost many
+            # tracks. Coarse KLT (deeper pyramid, larger window) from the constant-velocity and from the
+            # zero-velocity guess gives a pose; fine KLT started at that pose's pixels refines it.
+            for start in ([guess] if guess is not None else []) + [None]:
+                coarse = self._track_from(gray, X, start, self.p.retrack_window_px, self.p.retrack_levels)
+                if coarse is None:
+                    continue
+                fine = self._track_from(gray, X, self._project_pose(coarse[0], X))
+                for cand in (fine, coarse):
+                    if cand is not None and (best is None or cand[1].size > best[1].size):
+                        best = cand
+                if best[1].size >= self.p.retrack_inlier_ratio * len(self._ids):
+                    break
+            if best is not None:
+                self.retracked_frames += 1
+        if best is None:
             return None
-        p1, good = tracked
-        pts, ids = p1[good], self._ids[good]
-        pose, inl = self._pnp(self.landmarks[ids], pts, self._pose)
-        if pose is None:
-            return None
-        self._pts, self._ids = pts[inl].astype(np.float32), ids[inl]
+        pose, inl, pts = best
+        self._pts, self._ids = pts[inl].astype(np.float32), self._ids[inl]
         self._pose = pose
         self._maybe_keyframe(gray, frame, pose)
         return pose
 
+    def _track_from(self, gray: np.ndarray, X: np.ndarray, guess: np.ndarray | None, window: int | None = None,
+                    levels: int | None = None) -> tuple[np.ndarray, np.ndarray, np.ndarray] | None:
+        """KLT of the live tracks (landmarks X (N, 3)) from the previous frame into `gray`, started at `guess`
+        (N, 2) (None: their previous pixels), then PnP: (pose, inlier rows (M,) of the live tracks, tracked
+        pixels (N, 2)), or None."""
+        tracked = self._klt(gray, self._pts, guess, window=window, levels=levels)
+        if tracked is None:
+            return None
+        p1, good = tracked
+        rows = np.flatnonzero(good)
+        pose, inl = self._pnp(X[rows], p1[rows], self._pose)
+        if pose is None:
+            return None
+        return pose, rows[inl], p1
+
+    def _project_pose(self, T_odom_cam: np.ndarray, X: np.ndarray) -> np.ndarray:
+        """Pixels (N, 2) of odom points X (N, 3) seen from T_odom_cam; behind the camera: the live tracks' pixels."""
+        pc = (X - T_odom_cam[:3, 3]) @ T_odom_cam[:3, :3]
+        z = np.where(pc[:, 2] > 0.05, pc[:, 2], 1.0)
+        uv = np.stack([self.K.fx * pc[:, 0] / z + self.K.cx, self.K.fy * pc[:, 1] / z + self.K.cy], axis=1)
+        return np.where((pc[:, 2] > 0.05)[:, None], uv, self._pts)
+
     def _klt(self, gray: np.ndarray, pts: np.ndarray, guess: np.ndarray | None, prev: np.ndarray | None = None,
-             levels: int | None = None) -> tuple[np.ndarray, np.ndarray] | None:
+             levels: int | None = None, window: int | None = None) -> tuple[np.ndarray, np.ndarray] | None:
         """Track pixels pts (N, 2) from image `prev` (default: the previous frame's) into `gray`, starting at
-        `guess` (N, 2) if given, with `levels` pyramid levels (default klt_levels).
+        `guess` (N, 2) if given, with `levels` pyramid levels (default klt_levels) and a `window` px window
+        (default klt_window_px).
 
         Returns the new positions (N, 2) and which were tracked inside the image (N,) bool; None if KLT failed."""
         prev = self._prev_gray if prev is None else prev
-        lk = dict(winSize=(self.p.klt_window_px, self.p.klt_window_px),
+        win = self.p.klt_window_px if window is None else window
+        lk = dict(winSize=(win, win),
                   maxLevel=self.p.klt_levels if levels is None else levels,
                   criteria=(cv2.TERM_CRITERIA_EPS | cv2.TERM_CRITERIA_COUNT, self.p.klt_iterations, self.p.klt_epsilon_px))
         p0 = pts.reshape(-1, 1, 2)

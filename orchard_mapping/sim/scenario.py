@@ -92,6 +92,26 @@ class CameraSpec(_S):
     exposure_jitter: float = Field(0.04, ge=0.0)  # relative gain change per frame
 
 
+class MotionSpec(_S):
+    """How the camera's carrier moves on top of the hand-held jitter (all off by default)."""
+
+    # Walking with a hand-held camera: the body bobs once per step and sways once per stride (two steps).
+    step_hz: float = Field(0.0, ge=0.0)  # steps per second (0 = not walking)
+    bob_m: float = Field(0.0, ge=0.0)  # vertical amplitude at the step frequency
+    sway_deg: float = Field(0.0, ge=0.0)  # yaw and roll amplitude at the stride frequency
+    # Quick re-aiming: the camera swings away (random yaw/pitch direction) and back within reaim_s.
+    reaim_every_s: float = Field(0.0, ge=0.0)  # mean time between re-aims (0 = none)
+    reaim_deg: float = Field(0.0, ge=0.0)  # largest swing of a re-aim
+    reaim_s: float = Field(0.8, gt=0.0)  # duration of the swing and its return
+    # A ground vehicle on rough turf: engine and wheel vibration, and bumps that excite the suspension.
+    vibration_deg: float = Field(0.0, ge=0.0)  # rotation amplitude, 8-20 Hz
+    vibration_m: float = Field(0.0, ge=0.0)  # translation amplitude, 8-20 Hz
+    bump_every_m: float = Field(0.0, ge=0.0)  # mean distance between bumps (0 = none)
+    bump_deg: float = Field(0.0, ge=0.0)  # pitch and roll kick of a bump (damped 2.5 Hz oscillation)
+    bump_m: float = Field(0.0, ge=0.0)  # vertical kick of a bump
+    bump_decay_s: float = Field(0.25, gt=0.0)  # time constant of the suspension's damping
+
+
 class PathSpec(_S):
     # two_sweep: level sweep at trunk height, back along the side with the camera raised and tilted down
     # single_pass: one level sweep per side (trunks only); loop: one drive around the row, one bag
@@ -111,6 +131,7 @@ class PathSpec(_S):
     # fraction of the row [start, end] each side covers (partial_overlap scenario)
     front_span: Range = (0.0, 1.0)
     back_span: Range = (0.0, 1.0)
+    motion: MotionSpec = MotionSpec()  # walking / vehicle motion (handheld_walk, vehicle scenarios)
 
 
 class WindSpec(_S):

@@ -14,7 +14,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from orchard_mapping.sim.scenario import Scenario
+from orchard_mapping.sim.scenario import MotionSpec, Scenario
 from orchard_mapping.sim.scene import Terrain
 
 
@@ -47,6 +47,47 @@ def _smooth_noise(rng: np.random.Generator, t: np.ndarray, amplitude: float, dim
     a = rng.uniform(0.5, 1.0, (dims, k))
     a *= amplitude / np.sqrt(np.sum(a ** 2, axis=1, keepdims=True) / 2)
     return np.sum(a[None] * np.sin(2 * np.pi * f[None] * t[:, None, None] + ph[None]), axis=2)
+
+
+def carrier_motion(m: MotionSpec, t: np.ndarray, travelled: np.ndarray, rng: np.random.Generator
+                   ) -> tuple[np.ndarray, np.ndarray]:
+    """Walking / vehicle motion of the camera's carrier: position offsets (N, 3) m (world, z up) and angle
+    offsets (N, 3) deg (yaw, pitch, roll) at times t (N,) s after the sweep start, `travelled` (N,) m along it.
+
+    Draws from `rng` only for the parts that are switched on, so scenarios without them stay as they were.
+    """
+    n = len(t)
+    pos = np.zeros((n, 3))
+    ang = np.zeros((n, 3))
+    if m.step_hz > 0:
+        ph = rng.uniform(0, 2 * np.pi, 3)
+        pos[:, 2] += m.bob_m * np.sin(2 * np.pi * m.step_hz * t + ph[0])
+        ang[:, 0] += m.sway_deg * np.sin(np.pi * m.step_hz * t + ph[1])  # once per stride
+        ang[:, 2] += m.sway_deg * np.sin(np.pi * m.step_hz * t + ph[2])
+    if m.reaim_every_s > 0 and m.reaim_deg > 0 and n > 1:
+        t_at = np.cumsum(rng.exponential(m.reaim_every_s, int(t[-1] / m.reaim_every_s) + 3))
+        for t0 in t_at[t_at < t[-1]]:
+            d = rng.normal(size=2)
+            size = m.reaim_deg * rng.uniform(0.5, 1.0)
+            u = np.clip((t - t0) / m.reaim_s, 0.0, 1.0)
+            swing = size * np.sin(np.pi * u) ** 2  # away and back; peak rate pi size / reaim_s
+            ang[:, :2] += swing[:, None] * (d / np.linalg.norm(d))[None]
+    if m.vibration_deg > 0 or m.vibration_m > 0:
+        for k, amp, out in ((3, m.vibration_m, pos), (3, m.vibration_deg, ang)):
+            f = rng.uniform(8.0, 20.0, (k, 4))
+            phase = rng.uniform(0, 2 * np.pi, (k, 4))
+            out += amp / np.sqrt(2.0) * np.sum(np.sin(2 * np.pi * f[None] * t[:, None, None] + phase[None]), axis=2) / 2
+    if m.bump_every_m > 0 and n > 1:
+        at = np.cumsum(rng.exponential(m.bump_every_m, int(travelled[-1] / m.bump_every_m) + 3))
+        for s0 in at[at < travelled[-1]]:
+            t0 = float(np.interp(s0, travelled, t))
+            dt = np.clip(t - t0, 0.0, None)
+            shake = np.where(t >= t0, np.exp(-dt / m.bump_decay_s) * np.sin(2 * np.pi * 2.5 * dt), 0.0)
+            kick = rng.normal(size=3)
+            pos[:, 2] += m.bump_m * abs(kick[0]) * shake
+            ang[:, 1] += m.bump_deg * kick[1] * shake
+            ang[:, 2] += m.bump_deg * kick[2] * shake
+    return pos, ang
 
 
 def _ease(u: np.ndarray) -> np.ndarray:
@@ -97,6 +138,10 @@ def side_path(sc: Scenario, side: str, row_x: tuple[float, float], terrain: Terr
     y = sgn * np.concatenate(dist)
     jit = _smooth_noise(rng, t, p.jitter_m, 3)
     ang = np.radians(_smooth_noise(rng, t, p.jitter_deg, 3))
+    travelled = np.concatenate([[0.0], np.cumsum(np.hypot(np.diff(x), np.diff(h)))])
+    c_pos, c_ang = carrier_motion(p.motion, t, travelled, rng)
+    jit = jit + c_pos
+    ang = ang + np.radians(c_ang)
     pos = np.stack([x, y, terrain.height(x, y) + h], 1) + jit
     yaws = yaw + ang[:, 0]
     pits = pit + ang[:, 1]
@@ -128,6 +173,10 @@ def _loop_path(sc: Scenario, row_x: tuple[float, float], terrain: Terrain, rng: 
     t = np.arange(n) / rate
     jit = _smooth_noise(rng, t, p.jitter_m, 3)
     ang = np.radians(_smooth_noise(rng, t, p.jitter_deg, 3))
+    travelled = np.concatenate([[0.0], np.cumsum(np.hypot(np.diff(x), np.diff(y)))])
+    c_pos, c_ang = carrier_motion(p.motion, t, travelled, rng)
+    jit = jit + c_pos
+    ang = ang + np.radians(c_ang)
     pos = np.stack([x, y, terrain.height(x, y) + p.low_height_m], 1) + jit
     yaws = yaw + ang[:, 0]
     pits = ang[:, 1]
