@@ -11,6 +11,18 @@ Landmark positions are refined at each keyframe by the inverse-variance
 weighted mean of their depth back-projections (RealSense depth noise grows
 with z^2), the pairwise-refinement step of the paper in closed form.
 
+Hand-held motion breaks the constant-velocity prediction (a jerk of the
+hand, a quick re-aim, a bump under a vehicle): KLT started tens of pixels
+off with a small window and a shallow pyramid then loses most tracks, and a
+pose from the few left can be centimetres off without any "loss". So when
+fewer than `retrack_inlier_ratio` of the live tracks survive KLT and PnP,
+the frame is tracked again coarse to fine: a deeper pyramid and larger
+window from the constant-velocity and from the zero-velocity guess give a
+pose, and the fine KLT started at that pose's pixels refines it. Measured on
+the `tilted` scenario (2.5 deg hand jitter, 9 deg roll; 3 trees, 15 Hz, seed
+7), front end alone: front side drift 5.99 -> 0.07 %, back 0.25 -> 0.13 %,
+with 0 losses; on `standard` it never triggers (same poses, same time).
+
 When tracking fails (blank frames, motion blur, a hand over the lens) the
 front end re-localises against the last keyframe with ORB descriptors and
 logs it; frames it cannot place keep a NaN pose.

@@ -72,15 +72,19 @@ def _as_trajectory(stamps: np.ndarray, poses: np.ndarray) -> StampedTrajectory:
     return StampedTrajectory(stamps, poses[:, :3, 3], np.array([matrix_to_quat(T[:3, :3]) for T in poses]))
 
 
-@pytest.mark.accuracy
-def test_drift_and_ate_within_goals(reconstructed, accuracy):
-    sim, out = reconstructed
-    report = evaluate_result(sim / "ground_truth.json", out).to_dict()
+def _assert_sides_within_goals(report: dict, accuracy, label: str) -> None:
+    """Each side of an evaluation report (EvaluationReport.to_dict) within the drift and ATE goals."""
     for side in ("front", "back"):
         s = report["sides"][side]
         assert s["n_associated"] >= 20, s
-        accuracy.at_most(f"{side} drift, % of path", s["drift_percent"], DRIFT_MAX_PERCENT)
-        accuracy.at_most(f"{side} ATE, % of path", s["ate_percent"], ATE_MAX_PERCENT)
+        accuracy.at_most(f"{label}{side} drift, % of path", s["drift_percent"], DRIFT_MAX_PERCENT)
+        accuracy.at_most(f"{label}{side} ATE, % of path", s["ate_percent"], ATE_MAX_PERCENT)
+
+
+@pytest.mark.accuracy
+def test_drift_and_ate_within_goals(reconstructed, accuracy):
+    sim, out = reconstructed
+    _assert_sides_within_goals(evaluate_result(sim / "ground_truth.json", out).to_dict(), accuracy, "")
 
 
 def test_bundle_adjustment_improves_on_odometry(reconstructed):
@@ -131,6 +135,39 @@ def _poses(traj: StampedTrajectory) -> np.ndarray:
     return pose_matrices(np.asarray(traj.positions), np.asarray(traj.quaternions))
 
 
+# --------------------------------------------------------------------------- hand-held motion
+
+HAND_HELD = ("tilted", "handheld_walk")  # 2.5 deg jitter and 9 deg roll; a walk with bob, sway and re-aims
+
+
+@pytest.fixture(scope="module", params=HAND_HELD)
+def hand_held(request, tmp_path_factory, seed_offset) -> tuple[str, Path, Path, list[str]]:
+    """Both sides of a hand-held row through `run`; the front end's warnings (losses, relocalisations)."""
+    import logging
+
+    root = tmp_path_factory.mktemp(request.param)
+    sim = _simulate(root, request.param, SEED + seed_offset)
+    out = root / "result"
+    records: list[str] = []
+    handler = logging.Handler()
+    handler.emit = lambda rec: records.append(rec.getMessage())  # type: ignore[method-assign]
+    logger = logging.getLogger("orchard_mapping.pipeline")
+    logger.addHandler(handler)
+    try:
+        run(sim / "front", sim / "back", out, load_config())
+    finally:
+        logger.removeHandler(handler)
+    return request.param, sim, out, records
+
+
+@pytest.mark.accuracy
+def test_hand_held_rows_within_goals_without_losses(hand_held, accuracy):
+    name, sim, out, events = hand_held
+    _assert_sides_within_goals(evaluate_result(sim / "ground_truth.json", out).to_dict(), accuracy, f"{name} ")
+    # No blank or occluded frames here: the front end must never lose track (relocalisation is for real losses).
+    assert not [e for e in events if "lost" in e or "relocalised" in e or "restarted" in e], events
+
+
 # --------------------------------------------------------------------------- one bag round the row
 
 
@@ -152,11 +189,8 @@ def loop_run(tmp_path_factory, seed_offset) -> tuple[Path, dict]:
 @pytest.mark.accuracy
 def test_single_bag_drive_reconstructs_both_sides_within_goals(loop_run, accuracy):
     out, report = loop_run
+    _assert_sides_within_goals(report, accuracy, "loop drive ")
     for side in ("front", "back"):
-        s = report["sides"][side]
-        assert s["n_associated"] >= 20, s
-        accuracy.at_most(f"loop drive {side} drift, % of path", s["drift_percent"], DRIFT_MAX_PERCENT)
-        accuracy.at_most(f"loop drive {side} ATE, % of path", s["ate_percent"], ATE_MAX_PERCENT)
         assert (out / f"{side}.ply").stat().st_size > 100_000
     timings = json.loads((out / "timings.json").read_text())
     assert {"front_end_front", "front_end_back"} <= set(timings["stages"])
