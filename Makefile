@@ -39,6 +39,7 @@ test: setup
 
 # The accuracy tests again with OpenCV's optimised paths off, on one thread, and on two other seeds
 # (test/conftest.py); prints one table (build/accuracy_table.md) and fails on a check within 20 % of its limit.
+# PORTABLE_JOBS=2 runs two of the five runs at a time.
 test-portable: setup
 	bash scripts/test_portable.sh $(PYTEST_ARGS)
 

@@ -12,6 +12,7 @@ from __future__ import annotations
 
 from dataclasses import dataclass
 
+import cv2
 import numpy as np
 import open3d as o3d
 import open3d.core as o3c
@@ -22,6 +23,7 @@ from orchard_mapping.core.fusion import (
     FusionError,
     FusionResult,
     TsdfFusion,
+    MIXED_PIXEL_GAP_M,
     clean_depth,
     fuse_side,
     remove_floating_pixels,
@@ -171,7 +173,7 @@ def test_clean_depth_removes_pixels_far_from_the_fused_depth(row, side_fusion, a
     fusion = side_fusion
     window_px = int(np.ceil(0.015 * row.intr.fx))  # fuse_side's default: 1.5 cm at 1 m
     n_bad = n_good = kept_bad = kept_good = 0
-    for k in row.keyframes[:3]:
+    for k in row.keyframes:  # all of them: on 3 keyframes the shares moved by +-0.03 from seed to seed
         raw = row.noisy[k][0]
         fused = fusion.raycast_depth(row.poses[k])
         checked = fused > 0
@@ -182,8 +184,14 @@ def test_clean_depth_removes_pixels_far_from_the_fused_depth(row, side_fusion, a
         bad, good = bad & checked, good & checked
         n_bad, n_good = n_bad + bad.sum(), n_good + good.sum()
         kept_bad, kept_good = kept_bad + (bad & (cleaned > 0)).sum(), kept_good + (good & (cleaned > 0)).sum()
-        # Unchecked pixels (no fused surface along the ray) are kept by default, dropped on request.
-        assert np.array_equal(cleaned[~checked], raw[~checked])
+        # Unchecked pixels (no fused surface along the ray) are kept by default, except mixed pixels at a depth
+        # jump (their 3x3 window spans more than MIXED_PIXEL_GAP_M); all are dropped on request.
+        rawz = np.where(raw > 0, raw, 0).astype(np.float32)
+        spread = (cv2.dilate(rawz, np.ones((3, 3), np.uint8))
+                  - cv2.erode(np.where(rawz > 0, rawz, np.float32(1e6)), np.ones((3, 3), np.uint8)))
+        dropped = ~checked & (raw > 0) & (cleaned == 0)
+        assert np.all(spread[dropped] > MIXED_PIXEL_GAP_M)
+        assert np.array_equal(cleaned[~checked & ~dropped], raw[~checked & ~dropped])
         assert not clean_depth(raw, fused, window_px=window_px, keep_unverified=False)[~checked].any()
         # The lateral tolerance only ever keeps more.
         assert np.all(cleaned >= clean_depth(raw, fused))
