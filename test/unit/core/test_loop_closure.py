@@ -102,7 +102,7 @@ def row(seed_offset) -> Row:
     views = {  # id: (stamp s, T_world_cam)
         BEFORE_1: (0.0, path.poses[nearest(tree_x[1] - 0.25, level)]),
         TREE_1: (0.5, path.poses[i1]),
-        NEXT_1: (0.7, path.poses[i1 + 3]),  # 0.2 s later: a consecutive keyframe
+        NEXT_1: (0.7, path.poses[i1 + 1]),  # the next frame, stamped 0.2 s later: a consecutive keyframe
         TREE_2: (2.0, path.poses[nearest(tree_x[2], level)]),
         TREE_3: (4.0, path.poses[nearest(tree_x[3], level)]),
         RAISED_1: (25.0, path.poses[nearest(tree_x[1], raised)]),
