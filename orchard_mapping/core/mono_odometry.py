@@ -156,15 +156,6 @@ class RGBFrontEnd(RGBDFrontEnd):
         d = np.einsum("nij,nj->ni", np.broadcast_to(T, (len(uv), 4, 4))[:, :3, :3], d)
         return d / np.linalg.norm(d, axis=1, keepdims=True)
 
-    def _project(self, T: np.ndarray, X: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-        """Pixels (N, 2) and depths (N,) of odom points X (N, 3) seen from T_odom_cam (4, 4) or (N, 4, 4)."""
-        T = np.broadcast_to(T, (len(X), 4, 4))
-        pc = np.einsum("nji,nj->ni", T[:, :3, :3], X - T[:, :3, 3])
-        z = pc[:, 2]
-        zs = np.where(np.abs(z) > 1e-12, z, 1e-12)
-        uv = np.stack([self.K.fx * pc[:, 0] / zs + self.K.cx, self.K.fy * pc[:, 1] / zs + self.K.cy], axis=1)
-        return uv, z
-
     def _add_points(self, X: np.ndarray) -> np.ndarray:
         """Append triangulated landmarks X (N, 3) (unit weight: no depth to refine them with)."""
         start = len(self._lm_w)

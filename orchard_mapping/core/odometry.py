@@ -271,12 +271,19 @@ class RGBDFrontEnd:
             return None
         return pose, rows[inl], p1
 
+    def _project(self, T: np.ndarray, X: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """Pixels (N, 2) and depths (N,) of odom points X (N, 3) seen from T_odom_cam (4, 4) or (N, 4, 4)."""
+        T = np.broadcast_to(T, (len(X), 4, 4))
+        pc = np.einsum("nji,nj->ni", T[:, :3, :3], X - T[:, :3, 3])
+        z = pc[:, 2]
+        zs = np.where(np.abs(z) > 1e-12, z, 1e-12)
+        uv = np.stack([self.K.fx * pc[:, 0] / zs + self.K.cx, self.K.fy * pc[:, 1] / zs + self.K.cy], axis=1)
+        return uv, z
+
     def _project_pose(self, T_odom_cam: np.ndarray, X: np.ndarray) -> np.ndarray:
         """Pixels (N, 2) of odom points X (N, 3) seen from T_odom_cam; behind the camera: the live tracks' pixels."""
-        pc = (X - T_odom_cam[:3, 3]) @ T_odom_cam[:3, :3]
-        z = np.where(pc[:, 2] > 0.05, pc[:, 2], 1.0)
-        uv = np.stack([self.K.fx * pc[:, 0] / z + self.K.cx, self.K.fy * pc[:, 1] / z + self.K.cy], axis=1)
-        return np.where((pc[:, 2] > 0.05)[:, None], uv, self._pts)
+        uv, z = self._project(T_odom_cam, X)
+        return np.where((z > 0.05)[:, None], uv, self._pts)
 
     def _klt(self, gray: np.ndarray, pts: np.ndarray, guess: np.ndarray | None, prev: np.ndarray | None = None,
              levels: int | None = None, window: int | None = None) -> tuple[np.ndarray, np.ndarray] | None:
