@@ -7,7 +7,7 @@ T_odom_cam), L(j) landmark position (gtsam.Point3, odom).
 
 Only GTSAM's built-in C++ factors are used (projection, stereo, between,
 range, priors): a Python CustomFactor copies every variable on each call and
-is far too slow at this size (MEASURED.md "GTSAM 4.3.0 from Python").
+is far too slow at this size (docs/dependencies.md, "GTSAM 4.3.0 from Python").
 
 RGB-D mode (paper: eta = 1, s_c = 1). The 3D term E_i compares the measured
 point (pixel + aligned depth from the infrared stereo pair) with the

@@ -44,7 +44,7 @@ drift % / ATE % of the path, front / back side, and the median per-pair error.
   (max_speed_mps 3 m/s, max_turn_dps 180 deg/s, from the stamps): a diverged pair accepted once
   would otherwise seed the next pair's constant-velocity guess and diverge the rest.
 Speed: point-to-plane 120-240 ms per pair, hybrid 270-450 ms here on 2 busy shared cores
-(MEASURED.md: point-to-plane 47-71 ms on an idle machine).
+(docs/dependencies.md: point-to-plane 47-71 ms on an idle machine).
 """
 
 from __future__ import annotations

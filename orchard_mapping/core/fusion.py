@@ -11,7 +11,7 @@ Frames and units: poses are T_odom_cam of the colour optical frame (x right, y d
 z forward), 4x4; depth is float32 metres along the optical axis (z), 0 = missing; colour
 is RGB uint8. Points are in the odom frame.
 
-Open3D notes (0.20, measured, see /work/shared/MEASURED.md):
+Open3D notes (0.20, measured; docs/dependencies.md):
 - `ScalableTSDFVolume` is broken (always empty); `t.geometry.VoxelBlockGrid` is used.
 - `VoxelBlockGrid.ray_cast` returns depth biased 0.5-1 voxel too far (a flat wall at
   z = 1.2001..1.2091 m comes back 5.0..9.1 mm behind it with 1 cm voxels), while
