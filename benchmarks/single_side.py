@@ -21,6 +21,7 @@ span; its all-frame numbers are in the JSON too.
 
     python benchmarks/single_side.py --quick                      # 2 trees, standard: smoke run
     python benchmarks/single_side.py --matrix [--quick] [--trees 10]  # every scenario at 15/30 Hz (+10 Hz)
+    python benchmarks/single_side.py --matrix --json m.json --resume  # in parts: keeps finished cases
     python benchmarks/single_side.py --trees 10 30 --scenarios standard wind [--rate 15] [--seed 0]
         [--workdir DIR] [--reuse] [--baseline point_to_plane hybrid] [--json results.json]
 
@@ -34,6 +35,7 @@ import argparse
 import json
 import logging
 import statistics
+import subprocess
 import sys
 import tempfile
 import time
@@ -338,6 +340,33 @@ def summary_table(cases: list[dict[str, Any]]) -> Table:
 # ------------------------------------------------------------------------------------------ main
 
 
+def _commit() -> str:
+    """The commit the numbers belong to; '+modified' when the product's code or config differs from it."""
+    root = Path(__file__).resolve().parents[1]
+    try:
+        head = subprocess.run(["git", "rev-parse", "--short", "HEAD"], cwd=root, capture_output=True, text=True,
+                              check=True).stdout.strip()
+        dirty = subprocess.run(["git", "status", "--porcelain", "--", "orchard_mapping", "config"], cwd=root,
+                               capture_output=True, text=True, check=True).stdout.strip()
+    except (OSError, subprocess.CalledProcessError):
+        return "unknown"
+    return head + ("+modified" if dirty else "")
+
+
+def _finished_cases(path: Path, commit: str) -> dict[tuple[str, int, float, int], dict[str, Any]]:
+    """Cases a previous --json run of the same clean commit already measured, by (scenario, trees, Hz, seed)."""
+    if not path.is_file() or commit == "unknown" or commit.endswith("+modified"):
+        return {}
+    return {(c["scenario"], c["trees"], float(c["rate_hz"]), c["seed"]): c
+            for c in json.loads(path.read_text())["cases"] if c.get("commit") == commit}
+
+
+def _write_json(path: Path, cases: list[dict[str, Any]]) -> None:
+    tmp = path.with_name(path.name + ".tmp")
+    tmp.write_text(json.dumps({"cases": cases}, indent=1))
+    tmp.replace(path)  # atomic: an interrupted run never leaves half a file
+
+
 def main(argv: list[str] | None = None) -> int:
     ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     ap.add_argument("--trees", type=int, nargs="+", default=[10, 30])
@@ -356,6 +385,9 @@ def main(argv: list[str] | None = None) -> int:
                          "(10 trees unless --trees); one table with losses and relocalisations; no baseline unless "
                          "--baseline is given")
     ap.add_argument("--json", type=Path, default=None, help="write every number to this JSON file")
+    ap.add_argument("--resume", action="store_true",
+                    help="with --json: keep the cases that file already holds from the same commit (clean tree) "
+                         "instead of running them again, so a matrix of several hours can be run in parts")
     ap.add_argument("--verbose", "-v", action="store_true", help="show the pipeline's warnings (relocalisations, ...)")
     args = ap.parse_args(argv)
     trees_given = args.trees != ap.get_default("trees")
@@ -379,15 +411,23 @@ def main(argv: list[str] | None = None) -> int:
     if not args.verbose:  # the front end logs every relocalisation as a warning: too many for a table run
         logging.getLogger("orchard_mapping").setLevel(logging.ERROR)
     args.workdir.mkdir(parents=True, exist_ok=True)
+    commit = _commit()
+    done = _finished_cases(args.json, commit) if args.resume and args.json else {}
     cases = []
     t0 = time.perf_counter()
     for scenario, rate in runs:
         for trees in args.trees:
+            key = (scenario, trees, float(rate), args.seed)
+            if key in done:
+                console.print(f"{scenario}, {trees} trees, {rate:g} Hz: kept from {args.json} (commit {commit})")
+                cases.append(done[key])
+                continue
             case = run_case(scenario, trees, rate, args.seed, args.workdir, args.reuse, args.baseline)
+            case["commit"] = commit
             cases.append(case)
             console.print(case_table(case))
             if args.json:  # after every case, so a long run keeps what it has
-                args.json.write_text(json.dumps({"cases": cases}, indent=1))
+                _write_json(args.json, cases)
     console.rule("summary")
     console.print(matrix_table(cases))
     if args.baseline:
@@ -398,7 +438,7 @@ def main(argv: list[str] | None = None) -> int:
                   "scored at our keyframe stamps.")
     console.print(f"total {time.perf_counter() - t0:.0f} s; cases in {args.workdir}")
     if args.json:
-        args.json.write_text(json.dumps({"cases": cases}, indent=1))
+        _write_json(args.json, cases)
         console.print(f"wrote {args.json}")
     return 0
 
