@@ -341,24 +341,34 @@ def summary_table(cases: list[dict[str, Any]]) -> Table:
 
 
 def _commit() -> str:
-    """The commit the numbers belong to; '+modified' when the product's code or config differs from it."""
+    """What the numbers belong to: the commit and the git tree ids of the product's code and config
+    ('code <orchard_mapping>-<config>'), so that a commit that touches only docs, tests or benchmarks
+    keeps the finished cases; '+modified' when the working tree's code or config differs from HEAD."""
     root = Path(__file__).resolve().parents[1]
+
+    def git(*a: str) -> str:
+        return subprocess.run(["git", *a], cwd=root, capture_output=True, text=True, check=True).stdout.strip()
+
     try:
-        head = subprocess.run(["git", "rev-parse", "--short", "HEAD"], cwd=root, capture_output=True, text=True,
-                              check=True).stdout.strip()
-        dirty = subprocess.run(["git", "status", "--porcelain", "--", "orchard_mapping", "config"], cwd=root,
-                               capture_output=True, text=True, check=True).stdout.strip()
+        head = git("rev-parse", "--short", "HEAD")
+        code = "-".join(git("rev-parse", "--short", f"HEAD:{d}") for d in ("orchard_mapping", "config"))
+        dirty = git("status", "--porcelain", "--", "orchard_mapping", "config")
     except (OSError, subprocess.CalledProcessError):
         return "unknown"
-    return head + ("+modified" if dirty else "")
+    return f"{head} code {code}" + ("+modified" if dirty else "")
+
+
+def _code(commit: str) -> str:
+    return commit.split(" code ", 1)[-1]
 
 
 def _finished_cases(path: Path, commit: str) -> dict[tuple[str, int, float, int], dict[str, Any]]:
-    """Cases a previous --json run of the same clean commit already measured, by (scenario, trees, Hz, seed)."""
+    """Cases a previous --json run measured on the same code and config (clean tree), by
+    (scenario, trees, Hz, seed)."""
     if not path.is_file() or commit == "unknown" or commit.endswith("+modified"):
         return {}
     return {(c["scenario"], c["trees"], float(c["rate_hz"]), c["seed"]): c
-            for c in json.loads(path.read_text())["cases"] if c.get("commit") == commit}
+            for c in json.loads(path.read_text())["cases"] if _code(c.get("commit", "")) == _code(commit)}
 
 
 def _write_json(path: Path, cases: list[dict[str, Any]]) -> None:
@@ -386,7 +396,7 @@ def main(argv: list[str] | None = None) -> int:
                          "--baseline is given")
     ap.add_argument("--json", type=Path, default=None, help="write every number to this JSON file")
     ap.add_argument("--resume", action="store_true",
-                    help="with --json: keep the cases that file already holds from the same commit (clean tree) "
+                    help="with --json: keep the cases that file already holds from the same code and config (clean tree) "
                          "instead of running them again, so a matrix of several hours can be run in parts")
     ap.add_argument("--verbose", "-v", action="store_true", help="show the pipeline's warnings (relocalisations, ...)")
     args = ap.parse_args(argv)
