@@ -228,9 +228,13 @@ def run_baseline(sim_dir: Path, cfg: OrchardConfig, method: str, ours: dict[str,
     return out
 
 
+def _case_dir(workdir: Path, scenario: str, trees: int, rate: float, seed: int) -> Path:
+    return workdir / f"{scenario}_{trees}trees_{rate:g}hz_seed{seed}"
+
+
 def run_case(scenario: str, trees: int, rate: float, seed: int, workdir: Path, reuse: bool,
              baselines: list[str]) -> dict[str, Any]:
-    case_dir = workdir / f"{scenario}_{trees}trees_{rate:g}hz_seed{seed}"
+    case_dir = _case_dir(workdir, scenario, trees, rate, seed)
     sim_dir, res_dir = case_dir / "sim", case_dir / "result"
     console.rule(f"{scenario}, {trees} trees, {rate:g} Hz, seed {seed}")
     sim_s = simulate_case(scenario, trees, rate, seed, sim_dir, reuse)
@@ -398,6 +402,9 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--resume", action="store_true",
                     help="with --json: keep the cases that file already holds from the same code and config (clean tree) "
                          "instead of running them again, so a matrix of several hours can be run in parts")
+    ap.add_argument("--only-simulated", action="store_true",
+                    help="with --reuse: run only the cases whose folder already holds a simulation (simulate the "
+                         "others elsewhere meanwhile, then --resume)")
     ap.add_argument("--verbose", "-v", action="store_true", help="show the pipeline's warnings (relocalisations, ...)")
     args = ap.parse_args(argv)
     trees_given = args.trees != ap.get_default("trees")
@@ -431,6 +438,10 @@ def main(argv: list[str] | None = None) -> int:
             if key in done:
                 console.print(f"{scenario}, {trees} trees, {rate:g} Hz: kept from {args.json} (commit {commit})")
                 cases.append(done[key])
+                continue
+            sim_dir = _case_dir(args.workdir, scenario, trees, rate, args.seed) / "sim"
+            if args.only_simulated and not (sim_dir / "ground_truth.json").is_file():
+                console.print(f"{scenario}, {trees} trees, {rate:g} Hz: not simulated yet in {sim_dir}, skipped")
                 continue
             case = run_case(scenario, trees, rate, args.seed, args.workdir, args.reuse, args.baseline)
             case["commit"] = commit
