@@ -182,6 +182,9 @@ def run_ours(sim_dir: Path, res_dir: Path, cfg: OrchardConfig) -> dict[str, Any]
             "relocalisations": sum("relocalised" in e or "recovered" in e for e in
                                    getattr(per_side_fe.get(side), "events", [])),
             "restarts": sum("restarted" in e for e in getattr(per_side_fe.get(side), "events", [])),
+            # the front end's own words for every loss, relocalisation and restart (to explain each one)
+            "events": [e for e in getattr(per_side_fe.get(side), "events", [])
+                       if "lost" in e or "relocalised" in e or "recovered" in e or "restarted" in e],
             "retracked_frames": getattr(per_side_fe.get(side), "retracked_frames", None),
             "loops": len(sm.loops),
             "track_ms_median": _median_ms([s for s, _ in track]),
