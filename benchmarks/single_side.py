@@ -170,6 +170,10 @@ def run_ours(sim_dir: Path, res_dir: Path, cfg: OrchardConfig) -> dict[str, Any]
         n_frames = len(track)
         side_stages = {k: v for k, v in stages.items() if k.endswith(f"_{side}")}
         dur = gt.sides[side].duration_s
+        fe = per_side_fe.get(side)
+        # the front end's own words for every loss, relocalisation and restart (to explain each one)
+        events = [e for e in getattr(fe, "events", [])
+                  if "lost" in e or "relocalised" in e or "recovered" in e or "restarted" in e]
         out["sides"][side] = {
             "drift_percent": ev.get("drift_percent"), "ate_percent": ev.get("ate_percent"), "ate_mm": ev.get("ate_mm"),
             "drift_mm": ev.get("drift_mm"), "final_rotation_error_deg": ev.get("final_rotation_error_deg"),
@@ -178,14 +182,11 @@ def run_ours(sim_dir: Path, res_dir: Path, cfg: OrchardConfig) -> dict[str, Any]
             "keyframe_stamps": sm.keyframe_stamps.tolist(),
             "frames": n_frames,
             "frames_unplaced": sum(1 for _, ok in track if not ok),
-            "lost_frames": getattr(per_side_fe.get(side), "lost_frames", None),
-            "relocalisations": sum("relocalised" in e or "recovered" in e for e in
-                                   getattr(per_side_fe.get(side), "events", [])),
-            "restarts": sum("restarted" in e for e in getattr(per_side_fe.get(side), "events", [])),
-            # the front end's own words for every loss, relocalisation and restart (to explain each one)
-            "events": [e for e in getattr(per_side_fe.get(side), "events", [])
-                       if "lost" in e or "relocalised" in e or "recovered" in e or "restarted" in e],
-            "retracked_frames": getattr(per_side_fe.get(side), "retracked_frames", None),
+            "lost_frames": getattr(fe, "lost_frames", None),
+            "relocalisations": sum("relocalised" in e or "recovered" in e for e in events),
+            "restarts": sum("restarted" in e for e in events),
+            "events": events,
+            "retracked_frames": getattr(fe, "retracked_frames", None),
             "loops": len(sm.loops),
             "track_ms_median": _median_ms([s for s, _ in track]),
             "track_ms_p90": 1000.0 * float(np.percentile([s for s, _ in track], 90)) if track else None,
@@ -217,6 +218,10 @@ def run_baseline(sim_dir: Path, cfg: OrchardConfig, method: str, ours: dict[str,
         true = gt.sides[side].trajectory
         at_kf = _errors(_subset(traj, np.array(ours["sides"][side]["keyframe_stamps"])), true)
         dur = gt.sides[side].duration_s
+        fe = per_side_fe.get(side)
+        # the front end's own words for every loss, relocalisation and restart (to explain each one)
+        events = [e for e in getattr(fe, "events", [])
+                  if "lost" in e or "relocalised" in e or "recovered" in e or "restarted" in e]
         out["sides"][side] = {
             **{k: at_kf[k] for k in ("drift_percent", "ate_percent", "ate_mm", "drift_mm", "final_rotation_error_deg")},
             "scored_poses": at_kf["n_poses"],
