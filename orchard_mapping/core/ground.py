@@ -1,0 +1,191 @@
+"""Local ground plane under one tree (paper: "Local Ground Plane").
+
+The local ground of a tree is a plane n . p + d = 0 with n pointing up (away
+from the ground), fitted to the side's fused points around the trunk base.
+Plain RANSAC takes the plane with the most inliers, which near a tree is often
+not the ground: a wall of leaves, a weed canopy, the trunk's own surface. The
+paper changes RANSAC's degenerate condition with the trunk axis as a prior:
+
+  - the plane normal must lie within `max_axis_angle_deg` of the trunk axis;
+  - the plane must be the lower boundary of the points along its normal: a
+    candidate with more than `max_below_fraction` of the points further than
+    the inlier threshold t_s below it is rejected (a plane on weed tops or on
+    a leaf layer has the true ground below it).
+
+`fit_local_ground` does this; `fit_plane_plain_ransac` (Open3D's
+`segment_plane`) is kept as the baseline the paper compares with. Frames: all
+points and vectors in the side's reconstruction frame (odom_<side>), metres.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+
+from orchard_mapping.errors import OrchardMappingError
+
+__all__ = [
+    "GroundError",
+    "GroundParams",
+    "LocalGroundFit",
+    "fit_local_ground",
+    "fit_plane_plain_ransac",
+    "ground_neighbourhood",
+]
+
+
+class GroundError(OrchardMappingError):
+    """A local ground cannot be fitted (too few points, bad prior)."""
+
+
+@dataclass(frozen=True)
+class GroundParams:
+    """Settings of the local ground fit (config section `ground`)."""
+
+    __pydantic_config__ = {"extra": "forbid"}  # config files: unknown keys are errors
+
+    # m, horizontal radius around the trunk axis: the ground truth's own definition of a tree's local
+    # ground is the plane of the terrain within 0.5 m of the trunk.
+    radius_m: float = 0.5
+    # m, points higher than this above the lowest trunk point are not ground candidates (canopy, upper trunk)
+    max_height_above_trunk_bottom_m: float = 0.3
+    inlier_threshold_m: float = 0.02  # m, t_s: point-to-plane distance of an inlier
+    max_axis_angle_deg: float = 25.0  # deg, plane normal vs trunk axis (trunks lean up to ~10 deg)
+    max_below_fraction: float = 0.03  # share of points allowed further than t_s below the plane
+    iterations: int = 300
+    min_points: int = 50  # fewer candidate points: no ground for this tree
+
+    def __post_init__(self) -> None:
+        for name in ("radius_m", "inlier_threshold_m", "max_axis_angle_deg", "max_height_above_trunk_bottom_m"):
+            if not getattr(self, name) > 0:
+                raise GroundError(f"ground.{name} must be > 0, got {getattr(self, name)!r}")
+        if not 0.0 <= self.max_below_fraction < 1.0:
+            raise GroundError(f"ground.max_below_fraction must be in [0, 1), got {self.max_below_fraction!r}")
+        if self.iterations < 1 or self.min_points < 3:
+            raise GroundError("ground.iterations must be >= 1 and ground.min_points >= 3")
+
+
+@dataclass(frozen=True)
+class LocalGroundFit:
+    """A local ground plane n . p + d = 0 (odom_<side>, m)."""
+
+    normal: np.ndarray  # (3,) unit, up (along the trunk axis prior)
+    offset: float  # m, d
+    point: np.ndarray  # (3,) m, a point on the plane: where the trunk axis meets it
+    inliers: int  # points within t_s of the plane
+    rmse_m: float  # m, RMS point-to-plane distance of the inliers
+    candidates: int  # points the fit was chosen from
+
+    def height_of(self, p: np.ndarray) -> np.ndarray:
+        """Signed height (m) of points (..., 3) above the plane."""
+        return np.asarray(p, float) @ self.normal + self.offset
+
+
+def ground_neighbourhood(points: np.ndarray, axis_point: np.ndarray, axis: np.ndarray, params: GroundParams,
+                         trunk_bottom_height: float | None = None) -> np.ndarray:
+    """Indices of the points that may be the tree's local ground.
+
+    points (P, 3); axis_point (3,) a point on the trunk axis; axis (3,) unit, up. Candidates lie within
+    radius_m of the axis and, when the lowest trunk point's height along the axis is known, at most
+    max_height_above_trunk_bottom_m above it (the canopy and the upper trunk are never ground).
+    """
+    rel = np.asarray(points, float) - axis_point  # (P, 3)
+    h = rel @ axis  # (P,) height along the axis
+    radial = np.linalg.norm(rel - h[:, None] * axis, axis=1)  # (P,)
+    keep = radial <= params.radius_m
+    if trunk_bottom_height is not None:
+        keep &= h <= trunk_bottom_height + params.max_height_above_trunk_bottom_m
+    return np.flatnonzero(keep)
+
+
+def _unit(v: np.ndarray, what: str) -> np.ndarray:
+    v = np.asarray(v, float).reshape(3)
+    n = float(np.linalg.norm(v))
+    if not np.isfinite(n) or n < 1e-9:
+        raise GroundError(f"{what} must be a non-zero finite vector, got {v.tolist()}")
+    return v / n
+
+
+def _refine(points: np.ndarray, normal: np.ndarray, offset: float, t: float) -> tuple[np.ndarray, float, np.ndarray]:
+    """Least-squares plane (SVD) through the inliers of (normal, offset), keeping the normal's side."""
+    inl = np.abs(points @ normal + offset) < t
+    if inl.sum() < 3:
+        return normal, offset, inl
+    c = points[inl].mean(axis=0)
+    _, _, vt = np.linalg.svd(points[inl] - c, full_matrices=False)
+    n = vt[2] if vt[2] @ normal > 0 else -vt[2]
+    return n, float(-n @ c), np.abs(points @ n - n @ c) < t
+
+
+def fit_local_ground(points: np.ndarray, axis: np.ndarray, axis_point: np.ndarray, params: GroundParams,
+                     rng: np.random.Generator) -> LocalGroundFit | None:
+    """RANSAC plane with the trunk-axis prior (paper: "Local Ground Plane"); None if no plane passes.
+
+    points (P, 3) odom: the ground candidates (see `ground_neighbourhood`); axis (3,) trunk axis, up;
+    axis_point (3,) a point on it (the plane's `point` is where this axis meets the plane).
+    """
+    pts = np.asarray(points, float)
+    if pts.ndim != 2 or pts.shape[1] != 3:
+        raise GroundError(f"ground points must have shape (P, 3), got {pts.shape}")
+    up = _unit(axis, "the trunk axis prior")
+    p_axis = np.asarray(axis_point, float).reshape(3)
+    n_pts = len(pts)
+    if n_pts < params.min_points:
+        return None
+    t = params.inlier_threshold_m
+    cos_max = np.cos(np.radians(params.max_axis_angle_deg))
+    max_below = params.max_below_fraction * n_pts
+    idx = rng.integers(0, n_pts, size=(params.iterations, 3))  # (I, 3) samples
+    a, b, c = pts[idx[:, 0]], pts[idx[:, 1]], pts[idx[:, 2]]  # (I, 3) each
+    normals = np.cross(b - a, c - a)  # (I, 3)
+    norms = np.linalg.norm(normals, axis=1)
+    ok = norms > 1e-9
+    normals[ok] /= norms[ok, None]
+    normals *= np.sign(normals @ up)[:, None]  # up, along the prior
+    ok &= normals @ up >= cos_max  # the prior: normal roughly along the trunk axis
+    offsets = -np.einsum("ij,ij->i", normals, a)  # (I,)
+    best: tuple[int, int] | None = None  # (inliers, candidate)
+    for i in np.flatnonzero(ok):  # distances per candidate: (P,), candidates are few after the prior
+        d = pts @ normals[i] + offsets[i]
+        if np.count_nonzero(d < -t) > max_below:  # not the lower boundary: the ground lies below it
+            continue
+        score = int(np.count_nonzero(np.abs(d) < t))
+        if best is None or score > best[0]:
+            best = (score, int(i))
+    if best is None:
+        return None
+    n, d0, inl = _refine(pts, normals[best[1]], float(offsets[best[1]]), t)
+    if n @ up < cos_max or inl.sum() < 3:
+        return None
+    resid = pts[inl] @ n + d0
+    # the point of the plane on the trunk axis (the axis is never parallel to the plane: angle checked above)
+    s = -(p_axis @ n + d0) / float(up @ n)
+    return LocalGroundFit(normal=n, offset=d0, point=p_axis + s * up, inliers=int(inl.sum()),
+                          rmse_m=float(np.sqrt(np.mean(resid**2))), candidates=n_pts)
+
+
+def fit_plane_plain_ransac(points: np.ndarray, params: GroundParams, seed: int, up_hint: np.ndarray,
+                           axis_point: np.ndarray) -> LocalGroundFit | None:
+    """The baseline: Open3D's plain RANSAC (most inliers wins, no prior), normal turned to `up_hint`."""
+    import open3d as o3d
+
+    pts = np.asarray(points, float)
+    if len(pts) < params.min_points:
+        return None
+    o3d.utility.random.seed(int(seed))
+    pc = o3d.geometry.PointCloud(o3d.utility.Vector3dVector(pts))
+    model, inliers = pc.segment_plane(params.inlier_threshold_m, 3, params.iterations)
+    n = np.asarray(model[:3], float)
+    d0 = float(model[3]) / float(np.linalg.norm(n))
+    n = n / np.linalg.norm(n)
+    up = _unit(up_hint, "up_hint")
+    if n @ up < 0:
+        n, d0 = -n, -d0
+    resid = pts[inliers] @ n + d0
+    p_axis = np.asarray(axis_point, float).reshape(3)
+    denom = float(up @ n)
+    point = p_axis - (p_axis @ n + d0) * n if abs(denom) < 1e-6 else p_axis - (p_axis @ n + d0) / denom * up
+    return LocalGroundFit(normal=n, offset=d0, point=point, inliers=len(inliers),
+                          rmse_m=float(np.sqrt(np.mean(resid**2))) if len(inliers) else float("nan"),
+                          candidates=len(pts))

@@ -1,0 +1,331 @@
+"""Trunk landmarks of one side (paper: "Trunk Cylinder Modeling", "Local Ground Plane").
+
+From one side's reconstruction (keyframe poses, fused cloud, cleaned depth of
+keyframes spaced along the path) and the trunk detections of those keyframes:
+
+1. Association: every detected trunk instance is placed in the side's frame
+   by the median of its depth pixels; instances whose places lie within
+   `associate_radius_m` of each other across the row direction form one trunk
+   landmark (one tree, one side).
+2. Segmentation: a fused point belongs to the trunk when it projects into the
+   mask of one of the landmark's detections and is not hidden in that frame
+   (the union of trunk masks over nearby frames, as the paper does).
+3. A coarse cylinder over the whole trunk gives the axis (RANSAC, 3D only).
+4. The local ground under the tree: RANSAC with the trunk axis as the prior
+   (`core/ground.py`).
+5. The trunk segment around the diameter height (`diameter_height_m` above
+   the local ground, `band_m` long) is fitted with eq. objectCylinder
+   (3D term plus the 2D terms of every detection that sees the band); its
+   diameter is the trunk diameter. The 3D-only fit is the baseline.
+
+A trunk whose band has too few points or views is reported hidden at the
+diameter height (flag), with no diameter: never a made-up cylinder.
+Frames: everything in odom_<side> (metres) unless a name says `_cam`.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+
+import numpy as np
+
+from orchard_mapping.core.cylinder import Cylinder, CylinderError, CylinderFit, CylinderView, fit_cylinder
+from orchard_mapping.core.detection import CLASS_TRUNK, Detection
+from orchard_mapping.core.ground import GroundParams, LocalGroundFit, fit_local_ground, ground_neighbourhood
+from orchard_mapping.core.types import CameraIntrinsics
+from orchard_mapping.errors import OrchardMappingError
+
+__all__ = [
+    "TrunkError",
+    "TrunkLandmark",
+    "TrunkObservation",
+    "TrunkParams",
+    "TrunkView",
+    "build_trunk_landmarks",
+    "side_up_direction",
+]
+
+
+class TrunkError(OrchardMappingError):
+    """Trunk landmarks cannot be built from the given data."""
+
+
+@dataclass(frozen=True)
+class TrunkParams:
+    """Settings of trunk modelling (config section `trunks`)."""
+
+    __pydantic_config__ = {"extra": "forbid"}  # config files: unknown keys are errors
+
+    detect_every_m: float = 0.15  # m of camera path between frames given to the detector
+    diameter_height_m: float = 0.30  # m above the local ground: where the diameter is read (horticulture's habit)
+    band_m: float = 0.16  # m, length of the trunk segment fitted around the diameter height
+    associate_radius_m: float = 0.25  # m, detections closer than this across the row are one trunk
+    min_observations: int = 2  # detections a trunk landmark needs
+    min_mask_pixels: int = 150  # smaller masks (far or clipped trunks) are not used
+    visibility_tol_m: float = 0.03  # m, a fused point is hidden in a frame when that frame saw depth this much closer
+    max_axis_angle_deg: float = 30.0  # deg, trunk axis vs the side's up direction (lean + camera roll)
+    radius_min_m: float = 0.01  # m
+    radius_max_m: float = 0.25  # m
+    ransac_threshold_m: float = 0.008  # m, point-to-surface distance of a RANSAC inlier
+    ransac_iterations: int = 300
+    min_band_points: int = 60  # fused points a band fit needs, else the trunk is hidden at the diameter height
+    use_2d: bool = True  # eq. objectCylinder's 2D term (False: the 3D-only baseline)
+    sigma_3d_m: float = 0.003  # m, fused point noise (3D term's scale)
+    sigma_px: float = 1.0  # px, 2D term's scale
+    lam: float = 1.0  # lambda of eq. objectCylinder
+    huber_k: float = 1.345  # Huber threshold in sigmas
+
+    def __post_init__(self) -> None:
+        for name in ("detect_every_m", "diameter_height_m", "band_m", "associate_radius_m", "visibility_tol_m",
+                     "radius_min_m", "radius_max_m", "ransac_threshold_m", "sigma_3d_m", "sigma_px", "huber_k"):
+            if not getattr(self, name) > 0:
+                raise TrunkError(f"trunks.{name} must be > 0, got {getattr(self, name)!r}")
+        if self.radius_min_m >= self.radius_max_m:
+            raise TrunkError("trunks.radius_min_m must be below trunks.radius_max_m")
+
+
+@dataclass(frozen=True)
+class TrunkView:
+    """A keyframe given to the detector: its pose, cleaned depth and trunk detections."""
+
+    keyframe: int  # keyframe id
+    stamp: float  # s
+    T_odom_cam: np.ndarray  # (4, 4)
+    depth: np.ndarray  # (H, W) float32 m, cleaned, 0 = none
+    detections: list[Detection]
+
+
+@dataclass(frozen=True)
+class TrunkObservation:
+    """One detection of a trunk landmark: what the semantic bundle adjustment needs of that frame."""
+
+    keyframe: int  # keyframe id
+    stamp: float  # s
+    detection: Detection  # mask, box, score
+    cylinder_cam: Cylinder | None  # the landmark's band cylinder in this camera's frame (None: no fit)
+    band_pixels: int  # mask pixels with depth inside the diameter band
+
+
+@dataclass(frozen=True)
+class TrunkLandmark:
+    """One tree's trunk as seen from one side."""
+
+    id: int  # 0.. along the side
+    axis: np.ndarray  # (3,) unit, up: the whole trunk's axis (coarse fit)
+    base: np.ndarray  # (3,) m: where the axis meets the local ground (or the lowest trunk point's height)
+    length_m: float  # m, from base to the highest trunk point along the axis
+    ground: LocalGroundFit | None
+    band: CylinderFit | None  # the cylinder at the diameter height; None when hidden there
+    diameter_m: float | None  # m, 2 r of `band`
+    baseline_band: CylinderFit | None  # the 3D-only fit of the same band (the paper's baseline)
+    n_points: int  # fused trunk points
+    observations: list[TrunkObservation]
+    flags: list[str] = field(default_factory=list)  # e.g. "hidden_at_diameter_height", "no_ground"
+
+
+def side_up_direction(poses: np.ndarray) -> np.ndarray:
+    """(3,) unit "up" of a side from its camera poses (K, 4, 4): the mean of the cameras' -y axes
+    (optical frame: y points down in the image). A rough prior only: roll and pitch average out."""
+    up = -poses[:, :3, 1].mean(axis=0)
+    n = float(np.linalg.norm(up))
+    if n < 1e-6:
+        raise TrunkError("cannot tell up from the camera poses (their y axes cancel out)")
+    return up / n
+
+
+def _backproject(depth: np.ndarray, mask: np.ndarray, intr: CameraIntrinsics, T_odom_cam: np.ndarray) -> np.ndarray:
+    """(M, 3) odom points of the mask's pixels with depth."""
+    v, u = np.nonzero(mask & (depth > 0))
+    z = depth[v, u].astype(float)
+    Xc = np.stack([(u - intr.cx) / intr.fx * z, (v - intr.cy) / intr.fy * z, z], axis=1)
+    return Xc @ T_odom_cam[:3, :3].T + T_odom_cam[:3, 3]
+
+
+def _associate(places: np.ndarray, up: np.ndarray, radius: float) -> np.ndarray:
+    """(N,) cluster label of each detection place (N, 3): single linkage across the up direction."""
+    flat = places - np.outer(places @ up, up)  # (N, 3) horizontal positions
+    n = len(flat)
+    label = -np.ones(n, int)
+    k = 0
+    for i in range(n):
+        if label[i] >= 0:
+            continue
+        label[i] = k
+        stack = [i]
+        while stack:
+            j = stack.pop()
+            near = np.flatnonzero((label < 0) & (np.linalg.norm(flat - flat[j], axis=1) < radius))
+            label[near] = k
+            stack.extend(near.tolist())
+        k += 1
+    return label
+
+
+def _select_by_masks(points: np.ndarray, views: list[tuple[TrunkView, Detection]], intr: CameraIntrinsics,
+                     tol: float) -> np.ndarray:
+    """(P,) bool: points that project into a mask of `views` and are not hidden in that frame."""
+    sel = np.zeros(len(points), bool)
+    for v, det in views:
+        T_cam_odom = np.linalg.inv(v.T_odom_cam)
+        Xc = points @ T_cam_odom[:3, :3].T + T_cam_odom[:3, 3]  # (P, 3)
+        z = Xc[:, 2]
+        ok = z > 0.05
+        u = np.full(len(points), -1)
+        w = np.full(len(points), -1)
+        u[ok] = np.round(intr.fx * Xc[ok, 0] / z[ok] + intr.cx).astype(int)
+        w[ok] = np.round(intr.fy * Xc[ok, 1] / z[ok] + intr.cy).astype(int)
+        ok &= (u >= 0) & (u < intr.width) & (w >= 0) & (w < intr.height)
+        idx = np.flatnonzero(ok)
+        inside = det.mask[w[idx], u[idx]]
+        d = v.depth[w[idx], u[idx]]
+        visible = (d <= 0) | (z[idx] <= d + tol)  # not behind what this frame saw at that pixel
+        sel[idx[inside & visible]] = True
+    return sel
+
+
+def _normals(points: np.ndarray, radius: float = 0.02, knn: int = 20) -> np.ndarray:
+    import open3d as o3d
+
+    pc = o3d.geometry.PointCloud(o3d.utility.Vector3dVector(points))
+    pc.estimate_normals(o3d.geometry.KDTreeSearchParamHybrid(radius, knn))
+    return np.asarray(pc.normals)
+
+
+def _band_rows_mask(det_mask: np.ndarray, depth: np.ndarray, intr: CameraIntrinsics, T_odom_cam: np.ndarray,
+                    ground: LocalGroundFit | None, h_lo: float, h_hi: float, axis_h0: float,
+                    axis: np.ndarray) -> np.ndarray:
+    """The detection mask cut to its image rows whose trunk pixels lie in the band [h_lo, h_hi] m.
+
+    Whole rows are kept so that the mask's silhouette edges (whose pixels often have no cleaned depth)
+    stay in. Heights above the ground plane, or along the axis above axis_h0 without a ground.
+    """
+    P = _backproject(depth, det_mask, intr, T_odom_cam)
+    v, _ = np.nonzero(det_mask & (depth > 0))
+    h = ground.height_of(P) if ground is not None else P @ axis - axis_h0
+    out = np.zeros_like(det_mask)
+    if len(v) == 0:
+        return out
+    rows = np.unique(v)
+    # median height per row: sort by row, split
+    order = np.argsort(v, kind="stable")
+    splits = np.searchsorted(v[order], rows)
+    med = np.array([np.median(c) for c in np.split(h[order], splits[1:])])
+    keep = rows[(med >= h_lo) & (med <= h_hi)]
+    out[keep] = det_mask[keep]
+    return out
+
+
+def build_trunk_landmarks(points: np.ndarray, poses: np.ndarray, views: list[TrunkView], intr: CameraIntrinsics,
+                          params: TrunkParams, ground_params: GroundParams, rng: np.random.Generator
+                          ) -> list[TrunkLandmark]:
+    """Trunk landmarks with their local grounds from one side's fused cloud (P, 3) and detections.
+
+    poses (K, 4, 4): the side's keyframe poses (for the up direction); views: the detector's frames.
+    """
+    points = np.asarray(points, float)
+    if points.ndim != 2 or points.shape[1] != 3:
+        raise TrunkError(f"the fused cloud must have shape (P, 3), got {points.shape}")
+    up = side_up_direction(np.asarray(poses, float))
+    # 1. place every trunk detection
+    dets: list[tuple[TrunkView, Detection]] = []
+    places = []
+    for v in views:
+        for det in v.detections:
+            if det.class_id != CLASS_TRUNK or int(det.mask.sum()) < params.min_mask_pixels:
+                continue
+            P = _backproject(v.depth, det.mask, intr, v.T_odom_cam)
+            if len(P) < params.min_mask_pixels // 3:
+                continue
+            dets.append((v, det))
+            places.append(np.median(P, axis=0))
+    if not dets:
+        return []
+    label = _associate(np.asarray(places), up, params.associate_radius_m)
+    # order landmarks along the path: by the first keyframe that saw them
+    groups = sorted((np.flatnonzero(label == k) for k in range(label.max() + 1)),
+                    key=lambda g: min(dets[i][0].keyframe for i in g))
+    out: list[TrunkLandmark] = []
+    for members in groups:
+        if len(members) < params.min_observations:
+            continue
+        lm = _model_trunk(len(out), [dets[i] for i in members], np.asarray(places)[members], points, up, intr,
+                          params, ground_params, rng)
+        if lm is not None:
+            out.append(lm)
+    return out
+
+
+def _model_trunk(lm_id: int, obs: list[tuple[TrunkView, Detection]], places: np.ndarray, points: np.ndarray,
+                 up: np.ndarray, intr: CameraIntrinsics, params: TrunkParams, ground_params: GroundParams,
+                 rng: np.random.Generator) -> TrunkLandmark | None:
+    centre = np.median(places, axis=0)  # (3,)
+    rel = points - centre
+    radial = np.linalg.norm(rel - np.outer(rel @ up, up), axis=1)
+    near = np.flatnonzero(radial < max(ground_params.radius_m, params.associate_radius_m) + 0.1)
+    local = points[near]  # (L, 3) the tree's neighbourhood
+    trunk_sel = _select_by_masks(local, obs, intr, params.visibility_tol_m)
+    trunk = local[trunk_sel]
+    flags: list[str] = []
+    if len(trunk) < params.min_band_points:
+        return None  # a few stray pixels: not a trunk we can model
+    normals = _normals(trunk)
+    radius_range = (params.radius_min_m, params.radius_max_m)
+    try:  # 3. coarse axis from the whole trunk
+        coarse = fit_cylinder(trunk, normals, [], intr, rng, up=up, threshold_m=params.ransac_threshold_m,
+                              iterations=params.ransac_iterations, max_axis_angle_deg=params.max_axis_angle_deg,
+                              radius_range_m=radius_range, use_2d=False, sigma_3d_m=params.sigma_3d_m,
+                              huber_k=params.huber_k)
+    except CylinderError:
+        return None
+    axis = coarse.cylinder.axis
+    on_trunk = np.abs(np.linalg.norm((trunk - coarse.cylinder.origin) - np.outer((trunk - coarse.cylinder.origin) @ axis, axis), axis=1)
+                      - coarse.cylinder.radius) < 2 * params.ransac_threshold_m
+    h_axis = trunk @ axis
+    h_bottom = float(np.percentile(h_axis[on_trunk], 1)) if on_trunk.any() else float(h_axis.min())
+    h_top = float(np.percentile(h_axis[on_trunk], 99)) if on_trunk.any() else float(h_axis.max())
+    origin = coarse.cylinder.origin
+    # 4. local ground with the trunk axis prior
+    o_bottom = origin + (h_bottom - origin @ axis) * axis
+    cand = ground_neighbourhood(local, o_bottom, axis, ground_params, trunk_bottom_height=0.0)
+    ground = fit_local_ground(local[cand], axis, o_bottom, ground_params, rng)
+    if ground is None:
+        flags.append("no_ground")
+        base = o_bottom
+        h_lo, h_hi = params.diameter_height_m - params.band_m / 2, params.diameter_height_m + params.band_m / 2
+        band_h = trunk @ axis - h_bottom
+    else:
+        base = ground.point
+        h_lo, h_hi = params.diameter_height_m - params.band_m / 2, params.diameter_height_m + params.band_m / 2
+        band_h = ground.height_of(trunk)
+    in_band = (band_h >= h_lo) & (band_h <= h_hi)
+    band_views: list[CylinderView] = []
+    band_rows: list[np.ndarray] = []
+    for v, det in obs:
+        m = _band_rows_mask(det.mask, v.depth, intr, v.T_odom_cam, ground, h_lo, h_hi, h_bottom, axis)
+        band_rows.append(m)
+        if m.sum() >= params.min_mask_pixels // 4:
+            band_views.append(CylinderView(v.T_odom_cam, m, v.depth))
+    band: CylinderFit | None = None
+    baseline: CylinderFit | None = None
+    if in_band.sum() < params.min_band_points or not band_views:
+        flags.append("hidden_at_diameter_height")
+    else:
+        P, N = trunk[in_band], normals[in_band]
+        kw = dict(up=axis, threshold_m=params.ransac_threshold_m, iterations=params.ransac_iterations,
+                  max_axis_angle_deg=15.0, radius_range_m=radius_range, sigma_3d_m=params.sigma_3d_m,
+                  sigma_px=params.sigma_px, lam=params.lam, huber_k=params.huber_k)
+        try:
+            baseline = fit_cylinder(P, N, [], intr, rng, use_2d=False, **kw)  # type: ignore[arg-type]
+            band = fit_cylinder(P, N, band_views, intr, rng, use_2d=True, initial=baseline.cylinder,
+                                **kw) if params.use_2d else baseline  # type: ignore[arg-type]
+        except CylinderError:
+            flags.append("hidden_at_diameter_height")
+            band = baseline = None
+    observations = []
+    for (v, det), m in zip(obs, band_rows):
+        cyl_cam = band.cylinder.transformed(np.linalg.inv(v.T_odom_cam)) if band is not None else None
+        observations.append(TrunkObservation(v.keyframe, v.stamp, det, cyl_cam, int((m & (v.depth > 0)).sum())))
+    length = float(h_top - (base @ axis))
+    return TrunkLandmark(id=lm_id, axis=axis, base=base, length_m=length, ground=ground, band=band,
+                         diameter_m=2.0 * band.cylinder.radius if band is not None else None,
+                         baseline_band=baseline, n_points=len(trunk), observations=observations, flags=flags)

@@ -1,0 +1,74 @@
+"""Local ground (core.ground): RANSAC with the trunk-axis prior vs plain RANSAC (paper: Fig. cylinderPlane)."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+from orchard_mapping.core.ground import (
+    GroundError,
+    GroundParams,
+    fit_local_ground,
+    fit_plane_plain_ransac,
+    ground_neighbourhood,
+)
+
+N_TRUE = np.array([-np.sin(np.radians(6.0)), -np.sin(np.radians(3.0)), 1.0])
+N_TRUE /= np.linalg.norm(N_TRUE)  # world z up: 6 deg slope along x, 3 deg across
+
+
+def _ground_z(x: np.ndarray, y: np.ndarray) -> np.ndarray:
+    return -(N_TRUE[0] * x + N_TRUE[1] * y) / N_TRUE[2]
+
+
+def scene(rng: np.random.Generator) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """(points (P, 3), trunk axis (3,), trunk base (3,)): sloped ground, dense weeds up to 0.4 m, a wall of
+    leaves beside the tree with more points than the ground, and a leaning trunk."""
+    xy = rng.uniform(-0.6, 0.6, (3000, 2))
+    ground = np.c_[xy, _ground_z(*xy.T) + rng.normal(0, 0.004, len(xy))]
+    clumps = rng.uniform(-0.5, 0.5, (400, 2))
+    blade_h = rng.uniform(0.08, 0.4, 400)
+    bxy = np.repeat(clumps, 15, axis=0)
+    weeds = np.c_[bxy, _ground_z(*bxy.T) + (rng.uniform(0, 1, (400, 15)) * blade_h[:, None]).ravel()]
+    leaves = np.c_[rng.uniform(-0.6, 0.6, 6000), 0.3 + rng.normal(0, 0.01, 6000), rng.uniform(0.3, 1.5, 6000)]
+    axis = np.array([np.sin(np.radians(5.0)), 0.0, np.cos(np.radians(5.0))])
+    base = np.array([0.0, 0.0, 0.0])
+    e1 = np.cross(axis, [0.0, 1.0, 0.0])
+    e1 /= np.linalg.norm(e1)
+    e2 = np.cross(axis, e1)
+    t, ph = rng.uniform(0, 0.7, 2000), rng.uniform(0, 2 * np.pi, 2000)
+    trunk = base + t[:, None] * axis + 0.035 * (np.cos(ph)[:, None] * e1 + np.sin(ph)[:, None] * e2)
+    return np.concatenate([ground, weeds, leaves, trunk]), axis, base
+
+
+@pytest.mark.parametrize("seed", [0, 1, 2])
+def test_the_trunk_prior_finds_the_ground_under_weeds_and_beside_leaves(seed):
+    rng = np.random.default_rng(seed)
+    P, axis, base = scene(rng)
+    params = GroundParams()
+    idx = ground_neighbourhood(P, base + 0.05 * axis, axis, params, trunk_bottom_height=0.0)
+    fit = fit_local_ground(P[idx], axis, base + 0.05 * axis, params, np.random.default_rng(seed))
+    assert fit is not None
+    assert np.degrees(np.arccos(min(1.0, fit.normal @ N_TRUE))) < 0.5
+    assert abs(fit.point[2] - _ground_z(*fit.point[:2])) < 0.006  # height of the plane at the trunk
+    assert fit.height_of(base) == pytest.approx(0.0, abs=0.006)
+
+
+@pytest.mark.parametrize("seed", [0, 1, 2])
+def test_plain_ransac_takes_the_wall_of_leaves(seed):
+    """The paper's Fig. cylinderPlane: without the prior, the plane with most points is not the ground."""
+    rng = np.random.default_rng(seed)
+    P, axis, base = scene(rng)
+    fit = fit_plane_plain_ransac(P, GroundParams(), seed, axis, base)
+    assert fit is not None
+    assert np.degrees(np.arccos(min(1.0, abs(fit.normal @ N_TRUE)))) > 45.0
+
+
+def test_too_few_points_give_no_ground_and_bad_settings_are_named():
+    rng = np.random.default_rng(0)
+    up = np.array([0.0, 0.0, 1.0])
+    assert fit_local_ground(rng.normal(size=(10, 3)), up, np.zeros(3), GroundParams(), rng) is None
+    with pytest.raises(GroundError, match="ground.max_below_fraction"):
+        GroundParams(max_below_fraction=1.5)
+    with pytest.raises(GroundError, match="trunk axis prior"):
+        fit_local_ground(rng.normal(size=(100, 3)), np.zeros(3), np.zeros(3), GroundParams(), rng)
