@@ -15,8 +15,10 @@ from pydantic import BaseModel, ConfigDict, Field, ValidationError
 
 from orchard_mapping.core.bundle_adjustment import BundleAdjustmentParams
 from orchard_mapping.core.fusion import FusionParams
+from orchard_mapping.core.ground import GroundParams
 from orchard_mapping.core.loop_closure import LoopParams
 from orchard_mapping.core.odometry import FrontEndParams
+from orchard_mapping.core.trunks import TrunkParams
 from orchard_mapping.errors import ConfigError
 from orchard_mapping.resources import config_dir
 
@@ -68,6 +70,8 @@ class OrchardConfig(_Section):
     loop: LoopParams = LoopParams()
     ba: BundleAdjustmentParams = BundleAdjustmentParams()
     fusion: FusionParams = FusionParams()
+    trunks: TrunkParams = TrunkParams()
+    ground: GroundParams = GroundParams()
     evaluate: EvaluateConfig = EvaluateConfig()
     seed: int = 0
 

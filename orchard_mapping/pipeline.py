@@ -1,8 +1,9 @@
 """The offline pipeline: bags in, result folder out (docs/results.md). One public `run()`.
 
 Reads as the paper's steps, per side: front end (RGB-D odometry with
-keyframes), loop detection, pose graph, bundle adjustment, TSDF fusion; then
-writes each side's trajectory and cloud.
+keyframes), loop detection, pose graph, bundle adjustment, TSDF fusion, trunk
+detection with trunk cylinders and local grounds; then writes each side's
+trajectory, cloud, trunks and grounds.
 """
 
 from __future__ import annotations
@@ -25,9 +26,11 @@ from orchard_mapping.core.fusion import FusionResult, fuse_side
 from orchard_mapping.core.geometry import matrix_to_quat
 from orchard_mapping.core.odometry import RGBDFrontEnd
 from orchard_mapping.core.sidemap import FrontEndResult, LoopClosure, SideMap
+from orchard_mapping.core.trunks import TrunkLandmark, TrunkView, build_trunk_landmarks
 from orchard_mapping.core.types import RGBDFrame, StampedTrajectory
 from orchard_mapping.errors import BagFormatError
 from orchard_mapping.io.bags import RGBDSequence, read_rgbd
+from orchard_mapping.io.landmarks import GROUNDS_JSON, TRUNKS_JSON, write_grounds, write_trunks
 from orchard_mapping.io.results import atomic_write_text, write_timings, write_tum
 
 log = logging.getLogger(__name__)
@@ -122,21 +125,61 @@ def reconstruct_side(seq: RGBDSequence, side: str, cfg: OrchardConfig, timings: 
     points = np.zeros((0, 3), np.float32)
     colors = np.zeros((0, 3), np.uint8)
     cleaned: dict[int, np.ndarray] = {}
+    trunks: list[TrunkLandmark] = []
+    stamps = np.array([k.stamp for k in fe.keyframes])
     if cfg.input.mode == "rgbd":
         t0 = time.perf_counter()
         fused = fuse_keyframes(seq, side, labelled, [k.frame_index for k in fe.keyframes], ba.poses, cfg)
         points, colors = fused.points, fused.colors
         cleaned = fused.cleaned_depth  # position among the fused frames = keyframe id (frames come in order)
         timings.add(f"fusion_{side}", time.perf_counter() - t0)
+        if cfg.trunks.source != "off":
+            t0 = time.perf_counter()
+            trunks = model_trunks(fused, stamps, ba.poses, seq.intrinsics, side, cfg)
+            timings.add(f"trunks_{side}", time.perf_counter() - t0)
+            if not trunks:
+                log.warning("%s: no trunk found (trunks.json lists none for this side)", side)
     return SideMap(
         side=side, frame_id=getattr(cfg.frames, f"odom_{side}"), intrinsics=seq.intrinsics,
-        keyframe_stamps=np.array([k.stamp for k in fe.keyframes]), keyframe_poses=ba.poses,
+        keyframe_stamps=stamps, keyframe_poses=ba.poses,
         landmarks=ba.landmarks, observations=fe.observations, loops=loops,
         cloud_points=points, cloud_colors=colors,
         scale_free=cfg.input.mode == "rgb",
         odometry_poses=odometry,
         cleaned_depth=cleaned,
+        trunks=trunks,
     )
+
+
+def trunk_detector(cfg: OrchardConfig, side: str):
+    """The configured source of trunk masks for one side: `detect(color, stamp) -> list[Detection]`."""
+    tp = cfg.trunks
+    if tp.source == "masks":
+        from orchard_mapping.io.masks import MaskFolderDetector
+
+        masks = MaskFolderDetector(tp.masks_dir, side)
+        return lambda color, stamp: masks.detect_at(stamp)
+    from orchard_mapping.core.detection import OnnxTrunkDetector
+
+    model = OnnxTrunkDetector.from_params(tp)
+    return lambda color, stamp: model.detect(color)
+
+
+def model_trunks(fused: FusionResult, stamps: np.ndarray, poses: np.ndarray, intr, side: str,
+                 cfg: OrchardConfig) -> list[TrunkLandmark]:
+    """Detect trunks on keyframes with cleaned depth spaced trunks.detect_every_m apart, then model them."""
+    detect = trunk_detector(cfg, side)
+    views: list[TrunkView] = []
+    last: np.ndarray | None = None
+    for k in sorted(fused.cleaned_depth):
+        c = poses[k][:3, 3]
+        if last is not None and np.linalg.norm(c - last) < cfg.trunks.detect_every_m - 1e-6:
+            continue
+        last = c
+        dets = detect(fused.cleaned_color.get(k), float(stamps[k]))
+        views.append(TrunkView(k, float(stamps[k]), poses[k], fused.cleaned_depth[k], dets))
+    return build_trunk_landmarks(fused.points, poses, views, intr, cfg.trunks, cfg.ground,
+                                 np.random.default_rng(cfg.seed))
 
 
 def fuse_keyframes(seq: RGBDSequence, side: str, labelled: bool, frame_index: list[int], poses: np.ndarray,
@@ -176,6 +219,13 @@ def write_side(out: Path, sm: SideMap) -> None:
     write_tum(out / f"odometry_{sm.side}.tum", _trajectory(sm.keyframe_stamps, sm.odometry_poses, sm.frame_id))
     if len(sm.cloud_points):
         write_cloud(out / f"{sm.side}.ply", sm.cloud_points, sm.cloud_colors)
+
+
+def write_landmarks(out: Path, sides: dict[str, SideMap], cfg: OrchardConfig) -> None:
+    """trunks.json and grounds.json of every side (docs/results.md)."""
+    by_side = {s: (sm.frame_id, sm.trunks) for s, sm in sides.items()}
+    write_trunks(out / TRUNKS_JSON, by_side, cfg.trunks.diameter_height_m)
+    write_grounds(out / GROUNDS_JSON, by_side)
 
 
 def run(front: str | Path, back: str | Path | None, out: str | Path, cfg: OrchardConfig,
@@ -222,6 +272,8 @@ def _run(front: Path, back: Path | None, out: Path, cfg: OrchardConfig, progress
             timings.recording_duration_s += seq.duration
         sides[side] = reconstruct_side(seq, side, cfg, timings, labelled, progress)
         write_side(out, sides[side])
+    if cfg.trunks.source != "off" and cfg.input.mode == "rgbd":
+        write_landmarks(out, sides, cfg)
     write_timings(out / "timings.json", timings.stages, frames=timings.frames,
                   recording_duration_s=timings.recording_duration_s)
     atomic_write_text(out / "config.effective.yaml", dump_yaml(cfg))

@@ -97,8 +97,9 @@ def run(
     back: Optional[Path] = typer.Argument(None, help="Back-side bag; omit for a single bag labelled by side."),
     out: Path = typer.Option(..., help="Result folder (docs/results.md)."),
     config: Optional[Path] = typer.Option(None, help="Configuration file overlaid on config/default.yaml."),
+    set_: list[str] = typer.Option([], "--set", help="Configuration override, e.g. --set trunks.source=masks."),
 ) -> None:
-    """Reconstruct each side of the row: trajectories (TUM) into the result folder."""
+    """Reconstruct each side of the row: trajectories, clouds, trunks and local grounds into the result folder."""
     from rich.progress import BarColumn, MofNCompleteColumn, Progress, TextColumn, TimeRemainingColumn
 
     from orchard_mapping.config import load_config
@@ -106,7 +107,9 @@ def run(
     from orchard_mapping.pipeline import run as run_pipeline
 
     try:
-        cfg = load_config(config)
+        from orchard_mapping.config import unflatten
+
+        cfg = load_config(config, unflatten(_parse_sets(set_)))
         with Progress(TextColumn("{task.description}"), BarColumn(), MofNCompleteColumn(), TimeRemainingColumn(),
                       console=err_console) as bar:
             tasks: dict[str, Any] = {}
@@ -121,7 +124,8 @@ def run(
         raise _fail(err) from err
     t = result.timings
     for side, sm in result.sides.items():
-        console.print(f"{side}: {len(sm.keyframe_stamps)} keyframes, {len(sm.observations)} observations")
+        trunks = f", {len(sm.trunks)} trunks" if cfg.trunks.source != "off" else ""
+        console.print(f"{side}: {len(sm.keyframe_stamps)} keyframes, {len(sm.observations)} observations{trunks}")
     total = sum(t.stages.values())
     rtf = total / t.recording_duration_s if t.recording_duration_s > 0 else float("nan")
     console.print(f"{t.frames} frames in {total:.1f} s (real-time factor {rtf:.2f}); results in {out}")

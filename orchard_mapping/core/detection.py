@@ -8,12 +8,18 @@ masks on disk (the simulator's, or a user's annotations).
 from __future__ import annotations
 
 from dataclasses import dataclass
+from pathlib import Path
+from typing import Any
 
 import numpy as np
 
 from orchard_mapping.errors import OrchardMappingError
 
-__all__ = ["CLASS_NAMES", "CLASS_POST", "CLASS_TRUNK", "Detection", "DetectorError"]
+__all__ = ["CLASS_NAMES", "CLASS_POST", "CLASS_TRUNK", "Detection", "DetectorError", "OnnxTrunkDetector",
+           "OUTPUT_NAMES", "resolve_model_path"]
+
+# The model contract (docs/detector.md): these outputs, by name.
+OUTPUT_NAMES = ("boxes", "labels", "scores", "masks")
 
 CLASS_TRUNK = 1
 CLASS_POST = 2  # a trellis post is never a trunk (the merge may still use it as a landmark)
@@ -38,3 +44,110 @@ class Detection:
         v, u = np.nonzero(mask)
         box = np.array([u.min(), v.min(), u.max() + 1, v.max() + 1], float) if len(u) else np.zeros(4)
         return Detection(class_id, float(score), box, np.asarray(mask, bool))
+
+
+def resolve_model_path(model: str | Path) -> Path:
+    """A relative model path is looked up from the working directory, then beside the package (models/)."""
+    p = Path(model)
+    if p.is_absolute() or p.exists():
+        return p
+    from orchard_mapping.resources import _candidates
+
+    for root in _candidates("."):
+        if (root / p).exists():
+            return root / p
+    return p
+
+
+class OnnxTrunkDetector:
+    """An instance-segmentation model in ONNX that follows the contract of docs/detector.md.
+
+    Input: one float32 tensor (3, H, W) or (1, 3, H, W), RGB scaled to [0, 1]. Outputs by name:
+    boxes (N, 4) px x1 y1 x2 y2, labels (N,) int class ids (1 trunk, 2 post), scores (N,),
+    masks (N, 1, H, W) probabilities; all in input pixels. Frames are resized to the input size and
+    the results mapped back to the frame.
+    """
+
+    def __init__(self, path: str | Path, *, score_threshold: float = 0.5, mask_threshold: float = 0.5,
+                 input_size: tuple[int, int] | None = None, threads: int = 2) -> None:
+        self.path = resolve_model_path(path)
+        if not self.path.is_file():
+            raise DetectorError(f"trunk detector model {self.path}: no such file")
+        import onnxruntime as ort
+
+        opts = ort.SessionOptions()
+        opts.intra_op_num_threads = int(threads)
+        opts.inter_op_num_threads = 1
+        try:
+            self.session = ort.InferenceSession(str(self.path), opts, providers=["CPUExecutionProvider"])
+        except Exception as err:  # onnxruntime raises its own exception types for unreadable models
+            first = str(err).strip().splitlines()[0] if str(err).strip() else type(err).__name__
+            raise DetectorError(f"trunk detector model {self.path}: not a usable ONNX model ({first})") from err
+        inputs = self.session.get_inputs()
+        if len(inputs) != 1:
+            raise DetectorError(f"trunk detector model {self.path}: expected 1 input, found "
+                                f"{[i.name for i in inputs]}")
+        inp = inputs[0]
+        shape = list(inp.shape)
+        if len(shape) not in (3, 4) or shape[-3] not in (3, "3") and isinstance(shape[-3], int):
+            raise DetectorError(f"trunk detector model {self.path}: input '{inp.name}' must have shape (3, H, W) "
+                                f"or (1, 3, H, W), got {shape}")
+        if inp.type != "tensor(float)":
+            raise DetectorError(f"trunk detector model {self.path}: input '{inp.name}' must be float32, got {inp.type}")
+        self.input_name = inp.name
+        self.batched = len(shape) == 4
+        fixed = (shape[-2], shape[-1]) if all(isinstance(d, int) for d in shape[-2:]) else None
+        self.input_hw: tuple[int, int] | None = fixed if fixed is not None else (
+            (input_size[1], input_size[0]) if input_size and all(input_size) else None)
+        outs = {o.name: o for o in self.session.get_outputs()}
+        missing = [n for n in OUTPUT_NAMES if n not in outs]
+        if missing:
+            raise DetectorError(f"trunk detector model {self.path}: outputs {missing} missing (has {sorted(outs)}; "
+                                f"the contract needs {list(OUTPUT_NAMES)})")
+        ranks = {"boxes": 2, "labels": 1, "scores": 1, "masks": 4}
+        for n, r in ranks.items():
+            if outs[n].shape is not None and len(outs[n].shape) != r:
+                raise DetectorError(f"trunk detector model {self.path}: output '{n}' must have rank {r}, "
+                                    f"got shape {outs[n].shape}")
+        self.score_threshold = float(score_threshold)
+        self.mask_threshold = float(mask_threshold)
+
+    @staticmethod
+    def from_params(p: Any) -> "OnnxTrunkDetector":
+        """From the config section `trunks` (core.trunks.TrunkParams)."""
+        return OnnxTrunkDetector(p.model, score_threshold=p.score_threshold, mask_threshold=p.mask_threshold,
+                                 input_size=(p.input_width, p.input_height), threads=p.threads)
+
+    def detect(self, color: np.ndarray, where: str = "frame") -> list[Detection]:
+        """Detections in one colour image (H, W, 3) uint8 RGB; `where` names the frame in errors."""
+        import cv2
+
+        img = np.asarray(color) if color is not None else None
+        if img is None or img.dtype != np.uint8 or img.ndim != 3 or img.shape[2] != 3:
+            got = "nothing" if img is None else f"{img.dtype} {img.shape}"
+            raise DetectorError(f"trunk detector: {where}: expected an (H, W, 3) uint8 RGB image, got {got}")
+        H, W = img.shape[:2]
+        h, w = self.input_hw or (H, W)
+        x = img if (h, w) == (H, W) else cv2.resize(img, (w, h), interpolation=cv2.INTER_AREA)
+        x = np.ascontiguousarray(x.transpose(2, 0, 1), np.float32) / np.float32(255.0)  # (3, h, w)
+        if self.batched:
+            x = x[None]
+        try:
+            res = self.session.run(list(OUTPUT_NAMES), {self.input_name: x})
+        except Exception as err:
+            first = str(err).strip().splitlines()[0] if str(err).strip() else type(err).__name__
+            raise DetectorError(f"trunk detector model {self.path}: {where}: inference failed on input "
+                                f"{tuple(x.shape)} ({first})") from err
+        boxes, labels, scores, masks = (np.asarray(r) for r in res)
+        out = []
+        sx, sy = W / w, H / h
+        for i in np.flatnonzero(scores >= self.score_threshold):
+            prob = masks[i, 0] if masks.ndim == 4 else masks[i]
+            if prob.shape != (H, W):
+                prob = cv2.resize(prob.astype(np.float32), (W, H), interpolation=cv2.INTER_LINEAR)
+            m = prob >= self.mask_threshold
+            if not m.any():
+                continue
+            b = boxes[i] * np.array([sx, sy, sx, sy])
+            out.append(Detection(int(labels[i]), float(scores[i]), b.astype(float), m))
+        return out

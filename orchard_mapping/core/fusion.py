@@ -23,7 +23,7 @@ from __future__ import annotations
 
 import time
 from collections.abc import Iterable
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 from typing import Literal
 
 import cv2
@@ -328,6 +328,7 @@ class FusionResult:
     seconds_per_frame: float  # s, mean TSDF integration time per integrated frame
     seconds_total: float  # s, the whole call
     mode: str  # "side" (one grid for the side) or "local" (a grid of the nearest frames per keyframe)
+    cleaned_color: dict[int, np.ndarray] = field(default_factory=dict)  # same keys: (H, W, 3) uint8 RGB (detection)
 
 
 def _nearest_frames(centres: np.ndarray, k: int, n: int) -> np.ndarray:
@@ -400,6 +401,7 @@ def fuse_side(frames: Iterable[tuple[np.ndarray, np.ndarray, np.ndarray]], intr:
     key_set = None if keyframes is None else set(int(k) for k in keyframes)
     kept: list[tuple[np.ndarray, np.ndarray, np.ndarray]] = []  # frames held for local grids
     raw_key: dict[int, np.ndarray] = {}  # keyframe -> checked raw depth
+    color_key: dict[int, np.ndarray] = {}  # keyframe -> its colour image (the trunk detector's input)
     poses: list[np.ndarray] = []
     last_cleaned: np.ndarray | None = None  # camera centre of the last frame kept for cleaning
     n = 0
@@ -414,6 +416,7 @@ def fuse_side(frames: Iterable[tuple[np.ndarray, np.ndarray, np.ndarray]], intr:
         if (key_set is None or i in key_set) and (
                 last_cleaned is None or np.linalg.norm(Tc[:3, 3] - last_cleaned) >= cleaned_spacing_m):
             raw_key[i] = d
+            color_key[i] = np.asarray(color)
             last_cleaned = Tc[:3, 3]
         if mode == "local":
             kept.append((d, np.asarray(color), Tc))
@@ -439,4 +442,5 @@ def fuse_side(frames: Iterable[tuple[np.ndarray, np.ndarray, np.ndarray]], intr:
         d = np.where(raw <= depth_max_m, raw, np.float32(0.0))
         d = clean_depth(d, fused, rel_tol=rel_tol, abs_tol_m=abs_tol_m, window_px=window_px)
         cleaned[k] = remove_floating_pixels(d, intr, radius_m=float_radius_m, min_neighbours=float_min_neighbours)
-    return FusionResult(points, colors, cleaned, seconds / max(1, frames_done), time.perf_counter() - t_start, mode)
+    return FusionResult(points, colors, cleaned, seconds / max(1, frames_done), time.perf_counter() - t_start, mode,
+                        color_key)

@@ -35,7 +35,7 @@ __all__ = [
 ]
 
 
-class GroundError(OrchardMappingError):
+class GroundError(OrchardMappingError, ValueError):
     """A local ground cannot be fitted (too few points, bad prior)."""
 
 

@@ -46,7 +46,7 @@ __all__ = [
 ]
 
 
-class TrunkError(OrchardMappingError):
+class TrunkError(OrchardMappingError, ValueError):
     """Trunk landmarks cannot be built from the given data."""
 
 
@@ -56,6 +56,17 @@ class TrunkParams:
 
     __pydantic_config__ = {"extra": "forbid"}  # config files: unknown keys are errors
 
+    # Where trunk masks come from: "model" (the ONNX detector at `model`), "masks" (instance masks on disk
+    # under `masks_dir`/<side>/: the simulator's, or a user's annotations; measures the geometry alone),
+    # or "off" (no trunks, no local grounds).
+    source: str = "off"
+    model: str = "models/trunk_maskrcnn.onnx"  # relative paths: to the working directory, then the package
+    masks_dir: str = ""
+    score_threshold: float = 0.5  # detections scored lower are dropped
+    mask_threshold: float = 0.5  # mask probability of a trunk pixel
+    input_width: int = 0  # px, the model's input size (0: the model's own, or the frame's if dynamic)
+    input_height: int = 0
+    threads: int = 2  # onnxruntime intra-op threads
     detect_every_m: float = 0.15  # m of camera path between frames given to the detector
     diameter_height_m: float = 0.30  # m above the local ground: where the diameter is read (horticulture's habit)
     band_m: float = 0.16  # m, length of the trunk segment fitted around the diameter height
@@ -76,6 +87,15 @@ class TrunkParams:
     huber_k: float = 1.345  # Huber threshold in sigmas
 
     def __post_init__(self) -> None:
+        if self.source not in ("model", "masks", "off"):
+            raise TrunkError(f"trunks.source must be 'model', 'masks' or 'off', got {self.source!r}")
+        if self.source == "masks" and not self.masks_dir:
+            raise TrunkError("trunks.source is 'masks' but trunks.masks_dir is empty")
+        for name in ("score_threshold", "mask_threshold"):
+            if not 0.0 <= getattr(self, name) <= 1.0:
+                raise TrunkError(f"trunks.{name} must be in [0, 1], got {getattr(self, name)!r}")
+        if self.input_width < 0 or self.input_height < 0 or self.threads < 1:
+            raise TrunkError("trunks.input_width/input_height must be >= 0 and trunks.threads >= 1")
         for name in ("detect_every_m", "diameter_height_m", "band_m", "associate_radius_m", "visibility_tol_m",
                      "radius_min_m", "radius_max_m", "ransac_threshold_m", "sigma_3d_m", "sigma_px", "huber_k"):
             if not getattr(self, name) > 0:

@@ -33,6 +33,16 @@ FRUIT_MIN_VISIBLE_FRACTION = 0.25
 FRUIT_MIN_PIXELS = 20
 TRUNK_MIN_PIXELS = 50  # trunk pixels within +-5 cm of the diameter height in one frame
 TOP_BAND_M = 0.10  # "top seen": any pixel of the tree within this distance of its top
+# The local ground a side saw: terrain cells (GROUND_CELL_M square) within LOCAL_GROUND_RADIUS_M of the trunk
+# hit by a pixel of that side at depth at most GROUND_SEEN_MAX_RANGE_M (well inside a depth camera's reliable
+# range: a RealSense D435's ideal range ends at 3 m, where one pixel's depth noise is ~3.6 cm; ground seen
+# only farther is not measured, just glimpsed) in at least GROUND_MIN_FRAMES frames (a glimpse through a gap
+# in the leaves is not a measurement); the plane of the terrain over them needs GROUND_MIN_CELLS of them.
+GROUND_SEEN_MAX_RANGE_M = 2.5
+LOCAL_GROUND_RADIUS_M = 0.5
+GROUND_CELL_M = 0.02
+GROUND_MIN_CELLS = 50
+GROUND_MIN_FRAMES = 5
 
 
 def alpha_complex_volume(points: np.ndarray, alpha: float) -> float:
@@ -85,10 +95,14 @@ class VisibilityAccumulator:
         self.gn = np.array([t.ground_normal for t in scene.trees])
         self.height = np.array([tree_height(t) for t in scene.trees])
         self.dh = diameter_height
+        n_c = int(round(2 * LOCAL_GROUND_RADIUS_M / GROUND_CELL_M))
+        self.ground_cells = np.zeros((n_t, n_c, n_c), np.int32)  # per tree: frames that saw each terrain cell
 
     def add(self, out: RenderOutput, T_world_cam: np.ndarray) -> None:
         cls = out.cls.ravel()
         inst = out.inst.ravel()
+        near_ground = (cls == Cls.GROUND) & (out.depth.ravel() > 0) & (out.depth.ravel() <= GROUND_SEEN_MAX_RANGE_M)
+        self._add_ground(out.points.reshape(-1, 3)[near_ground])
         self.tri_seen[out.tri.ravel()[out.tri.ravel() >= 0]] = True
         # Fruit: visible pixels over the projected disc area.
         fr = cls == Cls.FRUIT
@@ -117,12 +131,42 @@ class VisibilityAccumulator:
         top = h >= self.height[tid] - TOP_BAND_M
         self.top_seen[np.unique(tid[top])] = True
 
+    def _add_ground(self, pts: np.ndarray) -> None:
+        """Mark the terrain cells around each tree that these ground hit points (N, 3) fall in."""
+        n_c = self.ground_cells.shape[1]
+        for t in range(len(self.gp)):
+            d = pts[:, :2] - self.gp[t, :2]  # (N, 2)
+            near = np.abs(d).max(axis=1) < LOCAL_GROUND_RADIUS_M
+            if not near.any():
+                continue
+            d = d[near]
+            d = d[np.sum(d**2, axis=1) < LOCAL_GROUND_RADIUS_M**2]
+            ij = np.unique(np.clip(((d + LOCAL_GROUND_RADIUS_M) / GROUND_CELL_M).astype(int), 0, n_c - 1), axis=0)
+            self.ground_cells[t, ij[:, 0], ij[:, 1]] += 1
+
+    def seen_local_ground(self, tree: TreeGeom) -> dict | None:
+        """The least-squares terrain plane over the cells of the tree's local ground this side saw."""
+        i, j = np.nonzero(self.ground_cells[tree.id] >= GROUND_MIN_FRAMES)
+        if len(i) < GROUND_MIN_CELLS:
+            return None
+        x = tree.ground_point[0] - LOCAL_GROUND_RADIUS_M + (i + 0.5) * GROUND_CELL_M
+        y = tree.ground_point[1] - LOCAL_GROUND_RADIUS_M + (j + 0.5) * GROUND_CELL_M
+        z = self.scene.terrain.height(x, y)
+        A = np.stack([x - tree.ground_point[0], y - tree.ground_point[1], np.ones_like(x)], 1)
+        (gx, gy, c), *_ = np.linalg.lstsq(A, z, rcond=None)
+        n = np.array([-gx, -gy, 1.0])
+        n /= np.linalg.norm(n)
+        disk = np.pi * LOCAL_GROUND_RADIUS_M**2 / GROUND_CELL_M**2
+        return {"point": np.round([tree.ground_point[0], tree.ground_point[1], c], 5).tolist(),
+                "normal": np.round(n, 6).tolist(), "seen_fraction": round(min(1.0, len(i) / disk), 4)}
+
     def summary(self, tree: TreeGeom) -> dict:
         leaves = tree.leaf_tri
         return {
             "trunk_at_diameter_height": bool(self.trunk_px[tree.id] >= TRUNK_MIN_PIXELS),
             "top": bool(self.top_seen[tree.id]),
             "canopy_fraction": round(float(self.tri_seen[leaves].mean()) if len(leaves) else 0.0, 4),
+            "local_ground": self.seen_local_ground(tree),
         }
 
 

@@ -1,0 +1,70 @@
+"""Instance masks on disk as a trunk "detector" (config `trunks.source: masks`).
+
+Layout (what `orchard-map simulate` writes, docs/ground_truth.md):
+  DIR/<side>/index.csv      `frame,stamp` per mask (stamp: message time, s)
+  DIR/<side>/<frame:06d>.png  16-bit instance mask: 0 background, 1..9999 trunk of tree id-1,
+                             10000.. fruit, 60000.. trellis post
+Frames are found by stamp (the keyframe's colour stamp, within 1 ms). A frame
+without a mask has no detections. Used to measure the trunk geometry without
+detector errors, and to run on a user's own annotations.
+"""
+
+from __future__ import annotations
+
+import csv
+from pathlib import Path
+
+import cv2
+import numpy as np
+
+from orchard_mapping.core.detection import CLASS_POST, CLASS_TRUNK, Detection, DetectorError
+
+__all__ = ["MaskFolderDetector", "detections_from_instance_mask"]
+
+MASK_FRUIT, MASK_POST = 10000, 60000
+
+
+def detections_from_instance_mask(m: np.ndarray) -> list[Detection]:
+    """Trunk and post detections (score 1) of a 16-bit instance mask (H, W)."""
+    out = []
+    for val in np.unique(m):
+        if 1 <= val < MASK_FRUIT:
+            out.append(Detection.from_mask(m == val, CLASS_TRUNK))
+        elif val >= MASK_POST:
+            out.append(Detection.from_mask(m == val, CLASS_POST))
+    return out
+
+
+class MaskFolderDetector:
+    """Detections read from `root/<side>/` by frame stamp."""
+
+    def __init__(self, root: str | Path, side: str, stamp_tol_s: float = 0.001) -> None:
+        self.dir = Path(root) / side
+        index = self.dir / "index.csv"
+        if not index.is_file():
+            raise DetectorError(f"trunk masks: no {index} (trunks.masks_dir must hold <side>/index.csv)")
+        stamps, frames = [], []
+        with index.open(newline="") as f:
+            for i, row in enumerate(csv.DictReader(f)):
+                try:
+                    frames.append(int(row["frame"]))
+                    stamps.append(float(row["stamp"]))
+                except (KeyError, TypeError, ValueError) as err:
+                    raise DetectorError(f"{index}: line {i + 2}: expected 'frame,stamp', got {row}") from err
+        order = np.argsort(stamps)
+        self.stamps = np.asarray(stamps, float)[order]
+        self.frames = np.asarray(frames, int)[order]
+        self.tol = stamp_tol_s
+
+    def detect_at(self, stamp: float) -> list[Detection]:
+        if not len(self.stamps):
+            return []
+        i = int(np.clip(np.searchsorted(self.stamps, stamp), 1, len(self.stamps) - 1)) if len(self.stamps) > 1 else 0
+        j = i if len(self.stamps) == 1 or abs(self.stamps[i] - stamp) < abs(self.stamps[i - 1] - stamp) else i - 1
+        if abs(self.stamps[j] - stamp) > self.tol:
+            return []
+        path = self.dir / f"{self.frames[j]:06d}.png"
+        m = cv2.imread(str(path), cv2.IMREAD_UNCHANGED)
+        if m is None or m.ndim != 2:
+            raise DetectorError(f"trunk masks: {path} is missing or not a single-channel 16-bit PNG")
+        return detections_from_instance_mask(m)
