@@ -166,6 +166,8 @@ def evaluate(
         typer.echo(json.dumps(report.to_dict(), indent=1))
     else:
         console.print(report.table())
+        if report.trunks:
+            console.print(report.trunk_table())
         console.print(report.per_tree_table())
 
 

@@ -32,6 +32,8 @@ from orchard_mapping.eval.report import (
     TraitErrors,
     TreePair,
 )
+from orchard_mapping.eval.landmarks import ground_errors, trunk_errors
+from orchard_mapping.io.landmarks import GROUNDS_JSON, TRUNKS_JSON, read_grounds, read_trunks
 from orchard_mapping.io.results import (
     SIDE_MERGE_JSON,
     TIMINGS_JSON,
@@ -237,6 +239,20 @@ def evaluate_result(
         if te.drift_percent is None:
             skipped[f"sides.{name}"] = f"{te.n_associated} poses associated within {trajectory_max_dt_s * 1000:g} ms"
 
+    trunks_e: dict[str, object] = {}
+    grounds_e: dict[str, object] = {}
+    if (result_dir / TRUNKS_JSON).is_file():
+        trunks = read_trunks(result_dir / TRUNKS_JSON)
+        grounds = read_grounds(result_dir / GROUNDS_JSON) if (result_dir / GROUNDS_JSON).is_file() else []
+        for name, side in gt.sides.items():
+            path = result_dir / trajectory_filename(name)
+            est = read_tum(path, side.frame) if path.is_file() else None
+            te, links = trunk_errors(gt, name, trunks, est)
+            trunks_e[name] = te
+            grounds_e[name] = ground_errors(name, grounds, links)
+    else:
+        skipped["trunks"] = f"{TRUNKS_JSON} absent"
+
     timings = None
     if (result_dir / TIMINGS_JSON).is_file():
         timings = _timings_part(gt, result_dir)
@@ -256,4 +272,6 @@ def evaluate_result(
         timings=timings,
         pairs=pairs,
         skipped=skipped,
+        trunks=trunks_e,
+        grounds=grounds_e,
     )

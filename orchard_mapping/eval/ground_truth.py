@@ -50,6 +50,13 @@ class TrueTree:
     fruit_radii: np.ndarray  # (F,) m
     fruit_count: int
     fruit_visible: Mapping[str, int]  # front, back, either, both
+    trunk_axis: np.ndarray = field(default_factory=lambda: np.array([0.0, 0.0, 1.0]))  # (3,) unit, world
+    ground_point: np.ndarray = field(default_factory=lambda: np.zeros(3))  # (3,) m, world: local ground plane
+    ground_normal: np.ndarray = field(default_factory=lambda: np.array([0.0, 0.0, 1.0]))  # (3,) unit, up
+    # side -> trunk seen at the diameter height from that side (None: the file does not say)
+    trunk_seen: Mapping[str, bool | None] = field(default_factory=dict)
+    # side -> (point (3,), normal (3,)) of the local ground that side saw (None: not stated / not seen enough)
+    seen_ground: Mapping[str, tuple[np.ndarray, np.ndarray] | None] = field(default_factory=dict)
 
 
 @dataclass(frozen=True)
@@ -134,9 +141,24 @@ def _tree(c: _Check, t: Any, w: str) -> TrueTree:
     t = c.obj(t, w)
     trunk = c.obj(c.get(t, "trunk", w), f"{w}.trunk")
     ground = c.obj(c.get(t, "local_ground", w), f"{w}.local_ground")
-    c.arr(c.get(ground, "point", f"{w}.local_ground"), (3,), f"{w}.local_ground.point")
-    c.arr(c.get(ground, "normal", f"{w}.local_ground"), (3,), f"{w}.local_ground.normal")
-    c.arr(c.get(trunk, "axis", f"{w}.trunk"), (3,), f"{w}.trunk.axis")
+    g_point = c.arr(c.get(ground, "point", f"{w}.local_ground"), (3,), f"{w}.local_ground.point")
+    g_normal = c.arr(c.get(ground, "normal", f"{w}.local_ground"), (3,), f"{w}.local_ground.normal")
+    axis = c.arr(c.get(trunk, "axis", f"{w}.trunk"), (3,), f"{w}.trunk.axis")
+    trunk_seen: dict[str, bool | None] = {}
+    seen_ground: dict[str, tuple[np.ndarray, np.ndarray] | None] = {}
+    observed = t.get("observed")
+    for side in SIDES:
+        ob = c.obj(observed.get(side, {}), f"{w}.observed.{side}") if isinstance(observed, Mapping) else {}
+        v = ob.get("trunk_at_diameter_height")
+        trunk_seen[side] = bool(v) if isinstance(v, bool) else None
+        lg = ob.get("local_ground")
+        if lg is None:
+            seen_ground[side] = None
+        else:
+            ow = f"{w}.observed.{side}.local_ground"
+            lg = c.obj(lg, ow)
+            seen_ground[side] = (c.arr(c.get(lg, "point", ow), (3,), f"{ow}.point"),
+                                 c.arr(c.get(lg, "normal", ow), (3,), f"{ow}.normal"))
     fruit = c.get(t, "fruit", w)
     if not isinstance(fruit, list):
         raise c.fail(f"{w}.fruit", f"expected a list, got {type(fruit).__name__}")
@@ -170,6 +192,11 @@ def _tree(c: _Check, t: Any, w: str) -> TrueTree:
         fruit_radii=np.asarray(radii, dtype=float),
         fruit_count=fruit_count,
         fruit_visible=visible,
+        trunk_axis=axis / max(np.linalg.norm(axis), 1e-12),
+        ground_point=g_point,
+        ground_normal=g_normal / max(np.linalg.norm(g_normal), 1e-12),
+        trunk_seen=trunk_seen,
+        seen_ground=seen_ground,
     )
 
 

@@ -134,6 +134,8 @@ class EvaluationReport:
     timings: TimingSummary | None
     pairs: tuple[TreePair, ...] = ()
     skipped: Mapping[str, str] = field(default_factory=dict)  # part -> reason
+    trunks: Mapping[str, Any] = field(default_factory=dict)  # side -> eval.landmarks.TrunkErrors
+    grounds: Mapping[str, Any] = field(default_factory=dict)  # side -> eval.landmarks.GroundErrors
 
     def to_dict(self) -> dict[str, Any]:
         """JSON-serialisable; every key is always present (null where not evaluated)."""
@@ -148,6 +150,8 @@ class EvaluationReport:
             "double_count": _plain(self.double_count),
             "merge": _plain(self.merge),
             "sides": {name: _plain(err) for name, err in self.sides.items()},
+            "trunks": {name: _plain(e) for name, e in self.trunks.items()},
+            "grounds": {name: _plain(e) for name, e in self.grounds.items()},
             "timings": _plain(self.timings),
             "per_tree": [_plain(p) for p in self.pairs],
             "skipped": dict(self.skipped),
@@ -240,6 +244,32 @@ class EvaluationReport:
                     f"{_fmt(e.ate_mm, 1)} mm RMSE, {e.alignment} alignment",
                 ),
             ]
+        for name, te in self.trunks.items():
+            if te is None:
+                na(f"{name} trunks", f"trunks.{name}")
+                continue
+            rows += [
+                (f"{name} trunk recall", _fmt(None if te.recall is None else 100 * te.recall, 1), "%",
+                 f"{te.matched} matched of {te.true_in_view} in view at the diameter height"),
+                (f"{name} trunk precision", _fmt(None if te.precision is None else 100 * te.precision, 1), "%",
+                 f"{te.reported} reported, {te.hidden_reported} hidden at the diameter height"),
+                (f"{name} trunk diameter MAE", _fmt(te.diameter_mae_mm), "mm",
+                 f"bias {_fmt(te.diameter_bias_mm, 2, True)} mm over {te.diameter_n}; 3D-only fit: MAE "
+                 f"{_fmt(te.diameter_3d_only_mae_mm)}, bias {_fmt(te.diameter_3d_only_bias_mm, 2, True)} mm"),
+                (f"{name} trunk axis error", _fmt(te.axis_error_deg), "deg", "median"),
+            ]
+        for name, ge in self.grounds.items():
+            if ge is None or ge.n == 0:
+                na(f"{name} local grounds", f"grounds.{name}")
+                continue
+            rows += [
+                (f"{name} ground normal error", _fmt(ge.normal_error_deg_median), "deg",
+                 f"median, max {_fmt(ge.normal_error_deg_max)} over {ge.n} trees, vs the {ge.reference} ground; "
+                 f"vs the full disk {_fmt(ge.normal_error_full_deg_median)}"),
+                (f"{name} ground height error", _fmt(ge.height_error_mm_median, 1), "mm",
+                 f"median, max {_fmt(ge.height_error_mm_max, 1)}; vs the full disk "
+                 f"{_fmt(ge.height_error_full_mm_median, 1)}"),
+            ]
         tm = self.timings
         if tm is None:
             na("processing time", "timings")
@@ -265,6 +295,18 @@ class EvaluationReport:
         tab.add_column("note")
         for row in self.rows():
             tab.add_row(*row)
+        return tab
+
+    def trunk_table(self) -> Table:
+        """Per side, each matched trunk: true and estimated diameter (and the 3D-only fit)."""
+        tab = Table(title="trunks per side (true / estimated; 3D-only fit)")
+        for name in ("side", "tree", "trunk", "diameter (mm)", "3D-only (mm)", "axis err (deg)", "flags"):
+            tab.add_column(name, justify="left" if name in ("side", "flags") else "right")
+        for side, te in self.trunks.items():
+            for p in te.pairs if te is not None else ():
+                tab.add_row(side, str(p.true_id), str(p.trunk_id),
+                            f"{p.diameter_true_mm:.1f} / {_fmt(p.diameter_mm, 1)}", _fmt(p.diameter_3d_only_mm, 1),
+                            f"{p.axis_error_deg:.2f}", ", ".join(p.flags))
         return tab
 
     def per_tree_table(self) -> Table:
