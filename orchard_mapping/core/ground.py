@@ -8,9 +8,9 @@ paper changes RANSAC's degenerate condition with the trunk axis as a prior:
 
   - the plane normal must lie within `max_axis_angle_deg` of the trunk axis;
   - the plane must be the lower boundary of the points along its normal: a
-    candidate with more than `max_below_fraction` of the points further than
-    the inlier threshold t_s below it is rejected (a plane on weed tops or on
-    a leaf layer has the true ground below it).
+    candidate with more points further than the inlier threshold t_s below it
+    than `max_below_fraction` of its inliers is rejected (a plane on weed tops
+    or on a leaf layer has the true ground below it).
 
 `fit_local_ground` does this; `fit_plane_plain_ransac` (Open3D's
 `segment_plane`) is kept as the baseline the paper compares with. Frames: all
@@ -52,7 +52,7 @@ class GroundParams:
     max_height_above_trunk_bottom_m: float = 0.3
     inlier_threshold_m: float = 0.02  # m, t_s: point-to-plane distance of an inlier
     max_axis_angle_deg: float = 25.0  # deg, plane normal vs trunk axis (trunks lean up to ~10 deg)
-    max_below_fraction: float = 0.03  # share of points allowed further than t_s below the plane
+    max_below_fraction: float = 0.05  # points further than t_s below the plane, as a share of its inliers
     iterations: int = 300
     min_points: int = 50  # fewer candidate points: no ground for this tree
 
@@ -118,6 +118,19 @@ def _refine(points: np.ndarray, normal: np.ndarray, offset: float, t: float) -> 
     return n, float(-n @ c), np.abs(points @ n - n @ c) < t
 
 
+def _lower_envelope(pts: np.ndarray, up: np.ndarray, cell_m: float) -> np.ndarray:
+    """Indices of the lowest point (along `up`) of each cell_m square cell across `up`."""
+    e1 = np.cross(up, [1.0, 0.0, 0.0] if abs(up[0]) < 0.9 else [0.0, 1.0, 0.0])
+    e1 /= np.linalg.norm(e1)
+    e2 = np.cross(up, e1)
+    cells = np.floor(np.stack([pts @ e1, pts @ e2], 1) / cell_m).astype(np.int64)  # (P, 2)
+    order = np.lexsort((pts @ up, cells[:, 1], cells[:, 0]))  # by cell, then height
+    c = cells[order]
+    first = np.ones(len(order), bool)
+    first[1:] = np.any(c[1:] != c[:-1], axis=1)
+    return order[first]
+
+
 def fit_local_ground(points: np.ndarray, axis: np.ndarray, axis_point: np.ndarray, params: GroundParams,
                      rng: np.random.Generator) -> LocalGroundFit | None:
     """RANSAC plane with the trunk-axis prior (paper: "Local Ground Plane"); None if no plane passes.
@@ -135,8 +148,11 @@ def fit_local_ground(points: np.ndarray, axis: np.ndarray, axis_point: np.ndarra
         return None
     t = params.inlier_threshold_m
     cos_max = np.cos(np.radians(params.max_axis_angle_deg))
-    max_below = params.max_below_fraction * n_pts
-    idx = rng.integers(0, n_pts, size=(params.iterations, 3))  # (I, 3) samples
+    # Samples come from the lower envelope (the lowest point of each 4 cm cell across the axis): the
+    # ground is the lower boundary, and under weeds or a leaf wall it is a small share of all points
+    # (6 % in the hidden-trunk test), which uniform sampling would rarely draw three times.
+    pool = _lower_envelope(pts, up, 0.04)
+    idx = pool[rng.integers(0, len(pool), size=(params.iterations, 3))]  # (I, 3) samples
     a, b, c = pts[idx[:, 0]], pts[idx[:, 1]], pts[idx[:, 2]]  # (I, 3) each
     normals = np.cross(b - a, c - a)  # (I, 3)
     norms = np.linalg.norm(normals, axis=1)
@@ -148,9 +164,15 @@ def fit_local_ground(points: np.ndarray, axis: np.ndarray, axis_point: np.ndarra
     best: tuple[int, int] | None = None  # (inliers, candidate)
     for i in np.flatnonzero(ok):  # distances per candidate: (P,), candidates are few after the prior
         d = pts @ normals[i] + offsets[i]
-        if np.count_nonzero(d < -t) > max_below:  # not the lower boundary: the ground lies below it
+        near = np.abs(d) < t
+        # Not the lower boundary: ground lies below it. Counted against the plane's own support, not all
+        # points: under weeds the ground may be a few percent of the candidates (a plane through weed
+        # tops and a strip of ground then has more inliers than the ground and half the ground below it).
+        if np.count_nonzero(d < -t) > params.max_below_fraction * np.count_nonzero(near):
             continue
-        score = int(np.count_nonzero(np.abs(d) < t))
+        # Support is counted in area (lower-envelope cells), not in points: a dense wall of weeds or the
+        # bottom edge of a leaf curtain holds many points in few cells, the ground few points in many.
+        score = int(np.count_nonzero(near[pool]))
         if best is None or score > best[0]:
             best = (score, int(i))
     if best is None:

@@ -304,18 +304,21 @@ def _model_trunk(lm_id: int, obs: list[tuple[TrunkView, Detection]], places: np.
     h_bottom = float(np.percentile(h_axis[on_trunk], 1)) if on_trunk.any() else float(h_axis.min())
     h_top = float(np.percentile(h_axis[on_trunk], 99)) if on_trunk.any() else float(h_axis.max())
     origin = coarse.cylinder.origin
-    # 4. local ground with the trunk axis prior
+    # 4. local ground with the trunk axis prior; the trunk's own surface is never ground
     o_bottom = origin + (h_bottom - origin @ axis) * axis
+    rel = local - origin
+    off_trunk = np.linalg.norm(rel - np.outer(rel @ axis, axis), axis=1) > coarse.cylinder.radius + 0.02
     cand = ground_neighbourhood(local, o_bottom, axis, ground_params, trunk_bottom_height=0.0)
+    cand = cand[off_trunk[cand]]
     ground = fit_local_ground(local[cand], axis, o_bottom, ground_params, rng)
+    h_lo, h_hi = params.diameter_height_m - params.band_m / 2, params.diameter_height_m + params.band_m / 2
     if ground is None:
+        # Without a ground the diameter height is unknown: no diameter rather than one at a guessed height.
         flags.append("no_ground")
         base = o_bottom
-        h_lo, h_hi = params.diameter_height_m - params.band_m / 2, params.diameter_height_m + params.band_m / 2
-        band_h = trunk @ axis - h_bottom
+        band_h = np.full(len(trunk), np.nan)
     else:
         base = ground.point
-        h_lo, h_hi = params.diameter_height_m - params.band_m / 2, params.diameter_height_m + params.band_m / 2
         band_h = ground.height_of(trunk)
     in_band = (band_h >= h_lo) & (band_h <= h_hi)
     band_views: list[CylinderView] = []
@@ -327,7 +330,9 @@ def _model_trunk(lm_id: int, obs: list[tuple[TrunkView, Detection]], places: np.
             band_views.append(CylinderView(v.T_odom_cam, m, v.depth))
     band: CylinderFit | None = None
     baseline: CylinderFit | None = None
-    if in_band.sum() < params.min_band_points or not band_views:
+    if ground is None:
+        pass
+    elif in_band.sum() < params.min_band_points or not band_views:
         flags.append("hidden_at_diameter_height")
     else:
         P, N = trunk[in_band], normals[in_band]

@@ -1,0 +1,88 @@
+"""The ONNX detector runtime (core.detection): the model contract of docs/detector.md and its errors.
+
+The models here are built with `onnx` and return fixed detections, so the runtime's pre- and
+post-processing (resizing, thresholds, mapping back to the frame) is checked exactly.
+"""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+onnx = pytest.importorskip("onnx")
+from onnx import TensorProto, helper, numpy_helper  # noqa: E402
+
+from orchard_mapping.core.detection import CLASS_POST, CLASS_TRUNK, DetectorError, OnnxTrunkDetector  # noqa: E402
+
+H, W = 48, 64  # model input
+
+
+def _masks() -> np.ndarray:
+    m = np.zeros((3, 1, H, W), np.float32)
+    m[0, 0, 10:40, 20:30] = 0.9  # a trunk
+    m[1, 0, 5:45, 50:56] = 0.8  # a post
+    m[2, 0, 0:10, 0:10] = 0.9  # a weak detection (score below threshold)
+    return m
+
+
+def _model(path: Path, *, outputs: tuple[str, ...] = ("boxes", "labels", "scores", "masks"),
+           input_shape: list = [3, H, W], input_type: int = TensorProto.FLOAT) -> Path:
+    values = {
+        "boxes": np.array([[20, 10, 30, 40], [50, 5, 56, 45], [0, 0, 10, 10]], np.float32),
+        "labels": np.array([CLASS_TRUNK, CLASS_POST, CLASS_TRUNK], np.int64),
+        "scores": np.array([0.95, 0.7, 0.2], np.float32),
+        "masks": _masks(),
+    }
+    names = ("boxes", "labels", "scores", "masks")
+    nodes = [helper.make_node("Constant", [], [out], value=numpy_helper.from_array(values[src], src))
+             for out, src in zip(outputs, names)]
+    # The input feeds an output-free branch so that it is a real graph input.
+    outs = [helper.make_tensor_value_info(o, TensorProto.FLOAT if s not in ("labels",) else TensorProto.INT64,
+                                          list(values[s].shape)) for o, s in zip(outputs, names)]
+    graph = helper.make_graph(nodes, "const_detector", [helper.make_tensor_value_info("image", input_type, input_shape)],
+                              outs)
+    model = helper.make_model(graph, opset_imports=[helper.make_opsetid("", 17)])
+    model.ir_version = 8
+    onnx.save(model, path)
+    return path
+
+
+def test_detections_are_thresholded_and_mapped_back_to_the_frame(tmp_path):
+    det = OnnxTrunkDetector(_model(tmp_path / "m.onnx"), score_threshold=0.5, mask_threshold=0.5)
+    frame = np.zeros((2 * H, 2 * W, 3), np.uint8)  # twice the model's input: results scaled by 2
+    out = det.detect(frame)
+    assert [d.class_id for d in out] == [CLASS_TRUNK, CLASS_POST]
+    np.testing.assert_allclose(out[0].box, [40, 20, 60, 80])
+    assert out[0].mask.shape == (2 * H, 2 * W)
+    v, u = np.nonzero(out[0].mask)
+    assert (v.min(), v.max(), u.min(), u.max()) == (20, 79, 40, 59)
+    assert out[1].score == pytest.approx(0.7)
+    assert len(OnnxTrunkDetector(tmp_path / "m.onnx", score_threshold=0.75).detect(frame)) == 1
+
+
+def test_a_missing_or_broken_model_is_one_typed_error_naming_the_file(tmp_path):
+    with pytest.raises(DetectorError, match=r"nope\.onnx: no such file"):
+        OnnxTrunkDetector(tmp_path / "nope.onnx")
+    bad = tmp_path / "text.onnx"
+    bad.write_text("not a model")
+    with pytest.raises(DetectorError, match=r"text\.onnx: not a usable ONNX model"):
+        OnnxTrunkDetector(bad)
+
+
+def test_models_that_break_the_contract_are_named(tmp_path):
+    with pytest.raises(DetectorError, match=r"outputs \['masks'\] missing"):
+        OnnxTrunkDetector(_model(tmp_path / "a.onnx", outputs=("boxes", "labels", "scores", "segm")))
+    with pytest.raises(DetectorError, match=r"input 'image' must have shape"):
+        OnnxTrunkDetector(_model(tmp_path / "b.onnx", input_shape=[H, W]))
+    with pytest.raises(DetectorError, match=r"input 'image' must be float32"):
+        OnnxTrunkDetector(_model(tmp_path / "c.onnx", input_type=TensorProto.UINT8))
+
+
+def test_an_image_of_the_wrong_type_is_named(tmp_path):
+    det = OnnxTrunkDetector(_model(tmp_path / "m.onnx"))
+    with pytest.raises(DetectorError, match=r"keyframe 7: expected an \(H, W, 3\) uint8 RGB image, got float32"):
+        det.detect(np.zeros((H, W, 3), np.float32), where="keyframe 7")
+    with pytest.raises(DetectorError, match="got uint8 \\(48, 64\\)"):
+        det.detect(np.zeros((H, W), np.uint8))

@@ -1,0 +1,96 @@
+"""Trunk landmarks of one side (core.trunks) on a rendered analytic scene: a trunk on sloping ground
+seen by a camera moving along the row; a trunk hidden at the diameter height is flagged, not invented."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+from orchard_mapping.core.detection import CLASS_TRUNK, Detection
+from orchard_mapping.core.ground import GroundParams
+from orchard_mapping.core.trunks import TrunkParams, TrunkView, build_trunk_landmarks
+from orchard_mapping.core.types import CameraIntrinsics
+
+INTR = CameraIntrinsics(640, 480, 615.0, 615.0, 319.5, 239.5)
+GROUND_Y = 0.35  # m below the camera (optical frame: y down): the ground is seen from 0.9 m on
+TRUNK = np.array([0.0, GROUND_Y, 1.25])  # trunk axis at the ground
+RADIUS = 0.034
+UP = np.array([0.0, -1.0, 0.0])
+
+
+def _render(cam_x: float, occluder: tuple[float, float, float] | None) -> tuple[np.ndarray, np.ndarray]:
+    """(depth (H, W) m, trunk mask) from a camera at (cam_x, 0, 0) looking along z.
+
+    The scene: flat ground, a vertical trunk 0.7 m tall, a wall behind at 3 m, and optionally a band of
+    leaves (weeds) occluder = (z, lo, hi): at depth z, covering heights lo..hi above the ground.
+    """
+    v, u = np.mgrid[0:INTR.height, 0:INTR.width]
+    dx, dy = (u - INTR.cx) / INTR.fx, (v - INTR.cy) / INTR.fy  # ray (dx, dy, 1) from the camera
+    z = np.full(u.shape, 3.0)
+    ground = np.where(dy > 1e-6, GROUND_Y / np.maximum(dy, 1e-6), np.inf)
+    z = np.minimum(z, ground)
+    # trunk: (cam_x + s dx - tx)^2 + (s - tz)^2 = r^2
+    ox, oz = cam_x - TRUNK[0], -TRUNK[2]
+    a, b, c = dx**2 + 1, 2 * (ox * dx + oz), ox**2 + oz**2 - RADIUS**2
+    disc = b * b - 4 * a * c
+    s = np.where(disc > 0, (-b - np.sqrt(np.maximum(disc, 0))) / (2 * a), np.inf)
+    h = GROUND_Y - s * dy  # height above ground of the hit
+    s = np.where((h > -0.05) & (h < 0.7), s, np.inf)
+    trunk = s < z
+    z = np.minimum(z, s)
+    if occluder is not None:
+        z_occ, lo, hi = occluder
+        h_occ = GROUND_Y - z_occ * dy
+        leaves = (h_occ > lo) & (h_occ < hi)
+        z = np.where(leaves, z_occ, z)
+        trunk &= ~leaves
+    return z.astype(np.float32), trunk
+
+
+def _side(occluder=None, seed=0):
+    rng = np.random.default_rng(seed)
+    views, points, poses = [], [], []
+    for k, x in enumerate(np.linspace(-0.45, 0.45, 7)):
+        T = np.eye(4)
+        T[0, 3] = x
+        depth, mask = _render(x, occluder)
+        depth = depth + (rng.standard_normal(depth.shape) * 0.002).astype(np.float32)
+        views.append(TrunkView(k, float(k), T, depth, [Detection.from_mask(mask, CLASS_TRUNK)]))
+        poses.append(T)
+        vv, uu = np.nonzero(depth < 2.5)
+        sel = rng.choice(len(vv), 40000, replace=False)
+        zz = depth[vv[sel], uu[sel]].astype(float)
+        points.append(np.stack([(uu[sel] - INTR.cx) / INTR.fx * zz + x, (vv[sel] - INTR.cy) / INTR.fy * zz, zz], 1))
+    return np.concatenate(points), np.array(poses), views
+
+
+def test_a_visible_trunk_gets_its_diameter_axis_and_ground():
+    points, poses, views = _side()
+    lms = build_trunk_landmarks(points, poses, views, INTR, TrunkParams(), GroundParams(), np.random.default_rng(0))
+    assert len(lms) == 1
+    lm = lms[0]
+    assert lm.flags == []
+    assert lm.diameter_m == pytest.approx(2 * RADIUS, abs=0.001)
+    assert np.degrees(np.arccos(abs(lm.axis @ UP))) < 1.0
+    assert lm.ground is not None
+    assert np.degrees(np.arccos(lm.ground.normal @ UP)) < 0.5
+    assert abs(lm.ground.point[1] - GROUND_Y) < 0.005  # where the axis meets the ground
+    assert len(lm.observations) == 7
+    assert all(o.cylinder_cam is not None for o in lm.observations)
+
+
+def test_a_trunk_hidden_at_the_diameter_height_is_flagged_not_invented():
+    # Weeds 10 cm in front of the trunk, 0.22-0.45 m tall: seen from 0.35 m they hide the trunk from 0.21
+    # to 0.46 m above the ground (the diameter band is 0.22-0.38 m) and leave the ground around in view.
+    points, poses, views = _side(occluder=(1.15, 0.22, 0.45))
+    lms = build_trunk_landmarks(points, poses, views, INTR, TrunkParams(), GroundParams(), np.random.default_rng(0))
+    assert len(lms) == 1  # the trunk is there (above and below the leaves)...
+    assert "hidden_at_diameter_height" in lms[0].flags  # ...but not seen where its diameter is read
+    assert lms[0].diameter_m is None and lms[0].band is None
+
+
+def test_no_detection_gives_no_trunk():
+    points, poses, views = _side()
+    empty = [TrunkView(v.keyframe, v.stamp, v.T_odom_cam, v.depth, []) for v in views]
+    assert build_trunk_landmarks(points, poses, empty, INTR, TrunkParams(), GroundParams(),
+                                 np.random.default_rng(0)) == []
