@@ -63,6 +63,7 @@ class GroundErrors:
     height_error_mm_max: float | None
     normal_error_full_deg_median: float | None  # against the full-disk plane, for reference
     height_error_full_mm_median: float | None
+    per_tree: tuple[tuple[int, float, float], ...] = ()  # (trunk id, normal error deg, signed height error mm)
 
 
 def _local_alignment(stamps: np.ndarray, est: StampedTrajectory | None, true: StampedTrajectory,
@@ -139,7 +140,7 @@ def _plane_errors(n_w: np.ndarray, q_w: np.ndarray, p_t: np.ndarray, n_t: np.nda
 
 def ground_errors(side: str, grounds: list[ResultGround],
                   links: dict[int, tuple[TrueTree, np.ndarray]]) -> GroundErrors:
-    seen_e, full_e = [], []
+    seen_e, full_e, ids = [], [], []
     refs = set()
     for g in grounds:
         if g.side != side or g.trunk_id not in links:
@@ -150,6 +151,7 @@ def ground_errors(side: str, grounds: list[ResultGround],
         ref = seen if seen is not None else (tree.ground_point, tree.ground_normal)
         refs.add("seen" if seen is not None else "full")
         seen_e.append(_plane_errors(n_w, q_w, ref[0], ref[1]))
+        ids.append(g.trunk_id)
         full_e.append(_plane_errors(n_w, q_w, tree.ground_point, tree.ground_normal))
     if not seen_e:
         return GroundErrors(0, "", None, None, None, None, None, None)
@@ -161,4 +163,5 @@ def ground_errors(side: str, grounds: list[ResultGround],
         height_error_mm_median=float(np.median(np.abs(a[:, 1]))), height_error_mm_max=float(np.abs(a[:, 1]).max()),
         normal_error_full_deg_median=float(np.median(f[:, 0])),
         height_error_full_mm_median=float(np.median(np.abs(f[:, 1]))),
+        per_tree=tuple((i, float(e[0]), float(e[1])) for i, e in zip(ids, a)),
     )

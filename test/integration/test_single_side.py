@@ -39,18 +39,24 @@ ATE_MAX_PERCENT = 0.15
 SEED = 11
 
 
-def _simulate(root: Path, scenario: str, seed: int, record: tuple[str, ...] = ("front", "back")) -> Path:
-    sc = load_scenario(scenario, {"row.n_trees": 2, "camera.rate_hz": 15, "masks_every": 0})
+def _simulate(root: Path, scenario: str, seed: int, record: tuple[str, ...] = ("front", "back"),
+              masks_every: int = 0) -> Path:
+    sc = load_scenario(scenario, {"row.n_trees": 2, "camera.rate_hz": 15, "masks_every": masks_every})
     return simulate(sc, seed, root / scenario, record=record).out_dir
+
+
+def _with_true_masks(sim: Path):
+    """The default configuration with trunk masks from the simulator (the geometry without detector errors)."""
+    return load_config(overrides={"trunks": {"source": "masks", "masks_dir": str(sim / "masks")}})
 
 
 @pytest.fixture(scope="module")
 def reconstructed(tmp_path_factory, seed_offset) -> tuple[Path, Path]:
-    """Both sides of the standard row through `run` (bags in, result folder out)."""
+    """Both sides of the standard row through `run` (bags in, result folder out), trunks from true masks."""
     root = tmp_path_factory.mktemp("standard")
-    sim = _simulate(root, "standard", SEED + seed_offset)
+    sim = _simulate(root, "standard", SEED + seed_offset, masks_every=1)
     out = root / "result"
-    run(sim / "front", sim / "back", out, load_config())
+    run(sim / "front", sim / "back", out, _with_true_masks(sim))
     return sim, out
 
 
@@ -223,13 +229,36 @@ def test_a_failed_run_leaves_no_folder_it_created(tmp_path):
 
 
 def test_result_folder_parts(reconstructed):
-    _, out = reconstructed
+    sim, out = reconstructed
     timings = json.loads((out / "timings.json").read_text())
     assert timings["frames"] > 400 and timings["recording_duration_s"] > 25
-    assert {"front_end_front", "bundle_adjustment_back", "fusion_front"} <= set(timings["stages"])
-    assert load_config(out / "config.effective.yaml") == load_config()
+    assert {"front_end_front", "bundle_adjustment_back", "fusion_front", "trunks_back"} <= set(timings["stages"])
+    assert load_config(out / "config.effective.yaml") == _with_true_masks(sim)
+    trunks = json.loads((out / "trunks.json").read_text())["sides"]
+    for side in ("front", "back"):
+        assert trunks[side]["frame"] == f"odom_{side}" and trunks[side]["trunks"], side
+        for t in trunks[side]["trunks"]:  # what the semantic bundle adjustment will need of each detection
+            assert len(t["observations"]) >= 2
+            assert all(o["cylinder_cam"] is not None and o["mask_pixels"] > 0 for o in t["observations"])
+    grounds = json.loads((out / "grounds.json").read_text())["sides"]
+    assert {g["trunk_id"] for g in grounds["front"]["grounds"]} <= {t["id"] for t in trunks["front"]["trunks"]}
     assert (out / "front.ply").stat().st_size > 100_000 and (out / "back.ply").is_file()
     assert not list(out.glob(".staging-*"))
+
+
+def test_trunk_diameters_of_each_side_within_goals(reconstructed, accuracy):
+    """Issue goals (trunks from the simulator's masks): diameter MAE <= 4 mm, bias within +-2 mm, recall
+    >= 95 % of the trunks in view, precision >= 98 %; the 2D term of eq. objectCylinder is on."""
+    sim, out = reconstructed
+    report = evaluate_result(sim / "ground_truth.json", out).to_dict()
+    for side in ("front", "back"):
+        t = report["trunks"][side]
+        assert t["diameter_n"] >= 2, t
+        accuracy.at_most(f"{side} trunk diameter MAE, mm", t["diameter_mae_mm"], 4.0)
+        accuracy.at_most(f"{side} |trunk diameter bias|, mm", abs(t["diameter_bias_mm"]), 2.0)
+        accuracy.at_least(f"{side} trunk recall", t["recall"], 0.95)
+        accuracy.at_least(f"{side} trunk precision", t["precision"], 0.98)
+        accuracy.at_most(f"{side} trunk axis error, deg", t["axis_error_deg"], 2.0)
 
 
 # --------------------------------------------------------------------------- bad input
@@ -272,6 +301,20 @@ def test_colour_without_depth_is_a_clear_error(short_sim, tmp_path):
     with pytest.raises(Exception, match="aligned_depth_to_color") as exc:
         run(tmp_path / "colouronly", short_sim / "back", tmp_path / "out", load_config())
     assert "colouronly" in str(exc.value)
+
+
+def test_a_side_without_trunks_still_writes_its_map_and_says_so(short_sim, tmp_path, caplog):
+    empty = tmp_path / "masks"
+    for side in ("front", "back"):
+        (empty / side).mkdir(parents=True)
+        (empty / side / "index.csv").write_text("frame,stamp\n")
+    cfg = load_config(overrides={"trunks": {"source": "masks", "masks_dir": str(empty)}})
+    out = tmp_path / "result"
+    run(short_sim / "front", short_sim / "back", out, cfg)
+    assert (out / "trajectory_front.tum").is_file() and (out / "front.ply").is_file()
+    trunks = json.loads((out / "trunks.json").read_text())["sides"]
+    assert trunks["front"]["trunks"] == [] and trunks["back"]["trunks"] == []
+    assert "front: no trunk found" in caplog.text
 
 
 def test_blank_frames_do_not_crash_the_front_end(short_sim, tmp_path):
