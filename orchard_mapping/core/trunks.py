@@ -181,6 +181,25 @@ def _associate(places: np.ndarray, up: np.ndarray, radius: float) -> np.ndarray:
     return label
 
 
+def _trunks_up(det_points: list[np.ndarray], label: np.ndarray, up0: np.ndarray) -> np.ndarray:
+    """(3,) unit: the mean long axis of the trunk clusters that are clearly elongated (PCA), else up0."""
+    acc = np.zeros(3)
+    for k in range(label.max() + 1):
+        members = np.flatnonzero(label == k)
+        if len(members) < 2:
+            continue
+        P = np.concatenate([det_points[i] for i in members])
+        if len(P) < 50:
+            continue
+        w, V = np.linalg.eigh(np.cov((P - P.mean(axis=0)).T))  # ascending eigenvalues
+        if w[2] < 16.0 * w[1]:  # not a trunk-like stick (long axis >= 4x the width in sd)
+            continue
+        a = V[:, 2] if V[:, 2] @ up0 > 0 else -V[:, 2]
+        acc += len(P) * a
+    n = float(np.linalg.norm(acc))
+    return acc / n if n > 0 else up0
+
+
 def _select_by_masks(points: np.ndarray, views: list[tuple[TrunkView, Detection]], intr: CameraIntrinsics,
                      tol: float) -> np.ndarray:
     """(P,) bool: points that project into a mask of `views` and are not hidden in that frame."""
@@ -249,6 +268,7 @@ def build_trunk_landmarks(points: np.ndarray, poses: np.ndarray, views: list[Tru
     # 1. place every trunk detection
     dets: list[tuple[TrunkView, Detection]] = []
     places = []
+    det_points: list[np.ndarray] = []
     for v in views:
         for det in v.detections:
             if det.class_id != CLASS_TRUNK or int(det.mask.sum()) < params.min_mask_pixels:
@@ -258,8 +278,14 @@ def build_trunk_landmarks(points: np.ndarray, poses: np.ndarray, views: list[Tru
                 continue
             dets.append((v, det))
             places.append(np.median(P, axis=0))
+            det_points.append(P[:: max(1, len(P) // 500)])
     if not dets:
         return []
+    label = _associate(np.asarray(places), up, params.associate_radius_m)
+    # The cameras' mean up is off by the mean pitch (a raised sweep looks down 35 deg), enough to keep a
+    # trunk seen from above apart from the same trunk seen level: take up from the trunks themselves
+    # (the long axis of each well-seen trunk's points) and associate again.
+    up = _trunks_up(det_points, label, up)
     label = _associate(np.asarray(places), up, params.associate_radius_m)
     # order landmarks along the path: by the first keyframe that saw them
     groups = sorted((np.flatnonzero(label == k) for k in range(label.max() + 1)),

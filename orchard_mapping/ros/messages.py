@@ -1,0 +1,122 @@
+"""Trunk landmarks and local grounds <-> orchard_mapping_msgs (TrunkCylinder(Array), LocalGround(Array)).
+
+`tree_id` carries the per-side trunk id until the side merge assigns tree ids (the ground of a trunk
+has the same id, which pairs them). Lengths in metres, in the frame of the array's header.
+A trunk hidden at the diameter height has radius NaN (and fit_rmse NaN): the cylinder's axis and base
+are known, its radius is not.
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass
+
+import numpy as np
+
+from orchard_mapping.core.trunks import TrunkLandmark
+
+__all__ = ["GroundRecord", "TrunkRecord", "ground_records", "grounds_from_msg", "grounds_to_msg", "trunks_from_msg",
+           "trunks_to_msg"]
+
+
+@dataclass(frozen=True)
+class TrunkRecord:
+    """One TrunkCylinder message as plain values."""
+
+    tree_id: int
+    side: str
+    base: tuple[float, float, float]  # m
+    axis: tuple[float, float, float]  # unit
+    radius: float  # m, NaN when unknown
+    length: float  # m
+    radius_stddev: float  # m, NaN when unknown
+    fit_rmse: float  # m, NaN when unknown
+    inlier_count: int
+
+    @staticmethod
+    def from_landmark(lm: TrunkLandmark, side: str) -> "TrunkRecord":
+        band = lm.band
+        return TrunkRecord(lm.id, side, _t3(lm.base), _t3(lm.axis),
+                           band.cylinder.radius if band is not None else math.nan, float(lm.length_m), math.nan,
+                           band.rmse_3d_m if band is not None else math.nan,
+                           band.inliers_3d if band is not None else lm.n_points)
+
+
+@dataclass(frozen=True)
+class GroundRecord:
+    """One LocalGround message as plain values."""
+
+    tree_id: int
+    side: str
+    point: tuple[float, float, float]  # m
+    normal: tuple[float, float, float]  # unit, up
+    offset: float  # m, n . p + offset = 0
+    fit_rmse: float  # m
+    inlier_count: int
+
+
+def _t3(v: np.ndarray) -> tuple[float, float, float]:
+    a = np.asarray(v, float).ravel()
+    return (float(a[0]), float(a[1]), float(a[2]))
+
+
+def _header(msg, frame_id: str, stamp: float) -> None:
+    msg.header.frame_id = frame_id
+    sec = math.floor(stamp)
+    msg.header.stamp.sec = int(sec)
+    msg.header.stamp.nanosec = min(int(round((stamp - sec) * 1e9)), 999_999_999)
+
+
+def trunks_to_msg(records: list[TrunkRecord], frame_id: str, stamp: float):
+    """TrunkCylinderArray with one cylinder per record (message time `stamp`, s)."""
+    from orchard_mapping_msgs.msg import TrunkCylinder, TrunkCylinderArray
+
+    out = TrunkCylinderArray()
+    _header(out, frame_id, stamp)
+    for r in records:
+        m = TrunkCylinder()
+        m.header = out.header
+        m.tree_id, m.side = int(r.tree_id), r.side
+        m.base.x, m.base.y, m.base.z = r.base
+        m.axis.x, m.axis.y, m.axis.z = r.axis
+        m.radius, m.length, m.radius_stddev, m.fit_rmse = r.radius, r.length, r.radius_stddev, r.fit_rmse
+        m.inlier_count = int(r.inlier_count)
+        out.cylinders.append(m)
+    return out
+
+
+def trunks_from_msg(msg) -> tuple[str, float, list[TrunkRecord]]:
+    """(frame id, stamp s, records) of a TrunkCylinderArray."""
+    recs = [TrunkRecord(int(m.tree_id), str(m.side), (m.base.x, m.base.y, m.base.z), (m.axis.x, m.axis.y, m.axis.z),
+                        float(m.radius), float(m.length), float(m.radius_stddev), float(m.fit_rmse),
+                        int(m.inlier_count)) for m in msg.cylinders]
+    return msg.header.frame_id, msg.header.stamp.sec + 1e-9 * msg.header.stamp.nanosec, recs
+
+
+def grounds_to_msg(records: list[GroundRecord], frame_id: str, stamp: float):
+    from orchard_mapping_msgs.msg import LocalGround, LocalGroundArray
+
+    out = LocalGroundArray()
+    _header(out, frame_id, stamp)
+    for r in records:
+        m = LocalGround()
+        m.header = out.header
+        m.tree_id, m.side = int(r.tree_id), r.side
+        m.point.x, m.point.y, m.point.z = r.point
+        m.normal.x, m.normal.y, m.normal.z = r.normal
+        m.offset, m.fit_rmse, m.inlier_count = r.offset, r.fit_rmse, int(r.inlier_count)
+        out.grounds.append(m)
+    return out
+
+
+def grounds_from_msg(msg) -> tuple[str, float, list[GroundRecord]]:
+    recs = [GroundRecord(int(m.tree_id), str(m.side), (m.point.x, m.point.y, m.point.z),
+                         (m.normal.x, m.normal.y, m.normal.z), float(m.offset), float(m.fit_rmse),
+                         int(m.inlier_count)) for m in msg.grounds]
+    return msg.header.frame_id, msg.header.stamp.sec + 1e-9 * msg.header.stamp.nanosec, recs
+
+
+def ground_records(landmarks: list[TrunkLandmark], side: str) -> list[GroundRecord]:
+    """The local grounds of a side's trunk landmarks (trunks without a ground have none)."""
+    return [GroundRecord(lm.id, side, _t3(lm.ground.point), _t3(lm.ground.normal), float(lm.ground.offset),
+                         float(lm.ground.rmse_m), int(lm.ground.inliers)) for lm in landmarks if lm.ground is not None]

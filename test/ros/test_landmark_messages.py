@@ -1,0 +1,61 @@
+"""Trunk landmarks and local grounds <-> TrunkCylinderArray / LocalGroundArray: round trips, also through
+rclpy's serialisation (what crosses a topic)."""
+
+from __future__ import annotations
+
+import math
+from dataclasses import astuple
+
+import numpy as np
+import pytest
+
+pytest.importorskip("rclpy")
+from rclpy.serialization import deserialize_message, serialize_message  # noqa: E402
+
+from orchard_mapping_msgs.msg import LocalGroundArray, TrunkCylinderArray  # noqa: E402
+
+from orchard_mapping.core.cylinder import Cylinder, CylinderFit  # noqa: E402
+from orchard_mapping.core.ground import LocalGroundFit  # noqa: E402
+from orchard_mapping.core.trunks import TrunkLandmark  # noqa: E402
+from orchard_mapping.ros.messages import (  # noqa: E402
+    TrunkRecord,
+    ground_records,
+    grounds_from_msg,
+    grounds_to_msg,
+    trunks_from_msg,
+    trunks_to_msg,
+)
+
+
+def _landmarks() -> list[TrunkLandmark]:
+    up = np.array([0.02, -0.999, 0.01]) / np.linalg.norm([0.02, -0.999, 0.01])
+    out = []
+    for i, hidden in enumerate((False, True)):
+        g = LocalGroundFit(-up, 0.61 + i, np.array([0.9 * i, 0.6, 1.3]), 800 + i, 0.004, 1500)
+        band = None if hidden else CylinderFit(Cylinder(up, np.array([0.9 * i, 0.3, 1.3]), 0.0342), 640, 0.0021,
+                                               1.2, 4000, True)
+        out.append(TrunkLandmark(id=i, axis=up, base=g.point, length_m=0.58, ground=g if i == 0 else None,
+                                 band=band, diameter_m=None if hidden else 0.0684, baseline_band=band,
+                                 n_points=900 + i, observations=[], flags=[]))
+    return out
+
+
+def test_trunks_round_trip_through_a_serialised_message():
+    records = [TrunkRecord.from_landmark(lm, "front") for lm in _landmarks()]
+    msg = trunks_to_msg(records, "odom_front", 1700000012.25)
+    back = deserialize_message(serialize_message(msg), TrunkCylinderArray)
+    frame, stamp, got = trunks_from_msg(back)
+    assert frame == "odom_front" and stamp == pytest.approx(1700000012.25, abs=1e-6)
+    np.testing.assert_equal([astuple(r) for r in got], [astuple(r) for r in records])  # NaN == NaN here
+    assert got[0].radius == pytest.approx(0.0342) and got[0].inlier_count == 640
+    assert math.isnan(got[1].radius) and got[1].inlier_count == 901  # hidden: no radius, not a made-up one
+    assert got[1].base == records[1].base and got[1].tree_id == 1
+
+
+def test_grounds_round_trip_and_pair_with_their_trunk():
+    records = ground_records(_landmarks(), "back")
+    assert [r.tree_id for r in records] == [0]  # the trunk without a ground sends none
+    msg = deserialize_message(serialize_message(grounds_to_msg(records, "odom_back", 5.5)), LocalGroundArray)
+    frame, stamp, got = grounds_from_msg(msg)
+    assert (frame, stamp) == ("odom_back", 5.5)
+    assert got == records
