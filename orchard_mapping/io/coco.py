@@ -1,0 +1,127 @@
+"""COCO instance annotations: the detector's training and evaluation data.
+
+A COCO folder holds `instances.json` (the COCO "instances" format that
+annotation tools such as the VGG Image Annotator or CVAT export: images,
+annotations with polygon or RLE segmentation, categories) and the images it
+names, relative to the folder. `export_coco` turns a simulator output (bags +
+16-bit instance masks) into one; `load_coco` reads any, with typed errors.
+Categories are matched by name: "trunk" and "post" (others are ignored).
+"""
+
+from __future__ import annotations
+
+import json
+from dataclasses import dataclass
+from pathlib import Path
+
+import cv2
+import numpy as np
+
+from orchard_mapping.core.detection import CLASS_NAMES, CLASS_POST, CLASS_TRUNK, DetectorError
+from orchard_mapping.io.results import atomic_write_json
+
+__all__ = ["CocoImage", "export_coco", "load_coco"]
+
+MIN_INSTANCE_PIXELS = 30  # slivers at the image border teach nothing
+
+
+@dataclass(frozen=True)
+class CocoImage:
+    path: Path
+    width: int
+    height: int
+    classes: np.ndarray  # (N,) int: CLASS_TRUNK / CLASS_POST
+    masks: np.ndarray  # (N, H, W) bool
+
+
+def export_coco(sim_dir: str | Path, out_dir: str | Path, *, every: int = 5,
+                sides: tuple[str, ...] = ("front", "back")) -> Path:
+    """Write every `every`-th masked frame of a simulation as JPEG + instances.json; returns its path."""
+    from pycocotools import mask as mask_util
+
+    from orchard_mapping.io.bags import read_rgbd
+    from orchard_mapping.io.masks import MaskFolderDetector
+
+    sim_dir, out_dir = Path(sim_dir), Path(out_dir)
+    (out_dir / "images").mkdir(parents=True, exist_ok=True)
+    images, annotations = [], []
+    for side in sides:
+        masks = MaskFolderDetector(sim_dir / "masks", side)
+        for n, frame in enumerate(read_rgbd(sim_dir / side)):
+            if n % every:
+                continue
+            dets = masks.detect_at(frame.stamp)
+            if not len(masks.stamps):
+                break
+            name = f"images/{sim_dir.name}_{side}_{frame.index:06d}.jpg"
+            bgr = cv2.cvtColor(frame.color, cv2.COLOR_RGB2BGR)
+            if not cv2.imwrite(str(out_dir / name), bgr, [cv2.IMWRITE_JPEG_QUALITY, 95]):
+                raise OSError(f"could not write {out_dir / name}")
+            img_id = len(images) + 1
+            h, w = frame.color.shape[:2]
+            images.append({"id": img_id, "file_name": name, "width": w, "height": h})
+            for d in dets:
+                area = int(d.mask.sum())
+                if area < MIN_INSTANCE_PIXELS:
+                    continue
+                rle = mask_util.encode(np.asfortranarray(d.mask.astype(np.uint8)))
+                rle["counts"] = rle["counts"].decode("ascii")
+                x1, y1, x2, y2 = (float(v) for v in d.box)
+                annotations.append({"id": len(annotations) + 1, "image_id": img_id, "category_id": d.class_id,
+                                    "segmentation": rle, "area": area, "bbox": [x1, y1, x2 - x1, y2 - y1],
+                                    "iscrowd": 0})
+    doc = {"images": images, "annotations": annotations,
+           "categories": [{"id": k, "name": v} for k, v in sorted(CLASS_NAMES.items())],
+           "info": {"description": f"orchard_mapping simulator frames from {sim_dir}", "every": every}}
+    return atomic_write_json(out_dir / "instances.json", doc)
+
+
+def _fail(path: Path, msg: str) -> DetectorError:
+    return DetectorError(f"COCO annotations {path}: {msg}")
+
+
+def load_coco(folder: str | Path) -> list[CocoImage]:
+    """Images with their trunk and post instance masks (decoded from polygons or RLE)."""
+    from pycocotools import mask as mask_util
+
+    folder = Path(folder)
+    path = folder / "instances.json" if folder.is_dir() else folder
+    root = path.parent
+    try:
+        doc = json.loads(path.read_text(encoding="utf-8"))
+    except FileNotFoundError as err:
+        raise _fail(path, "not found") from err
+    except (OSError, UnicodeDecodeError, json.JSONDecodeError) as err:
+        raise _fail(path, f"not readable JSON ({err})") from err
+    try:
+        names = {int(c["id"]): str(c["name"]).lower() for c in doc["categories"]}
+        to_class = {cid: {"trunk": CLASS_TRUNK, "post": CLASS_POST}[n] for cid, n in names.items()
+                    if n in ("trunk", "post")}
+        by_image: dict[int, list[dict]] = {}
+        for a in doc["annotations"]:
+            by_image.setdefault(int(a["image_id"]), []).append(a)
+        out = []
+        for im in doc["images"]:
+            h, w = int(im["height"]), int(im["width"])
+            cls, masks = [], []
+            for a in by_image.get(int(im["id"]), []):
+                if int(a["category_id"]) not in to_class:
+                    continue
+                seg = a["segmentation"]
+                if isinstance(seg, list):  # polygons
+                    rle = mask_util.merge(mask_util.frPyObjects(seg, h, w))
+                elif isinstance(seg, dict) and isinstance(seg.get("counts"), list):  # uncompressed RLE
+                    rle = mask_util.frPyObjects(seg, h, w)
+                else:
+                    rle = dict(seg)
+                    if isinstance(rle["counts"], str):
+                        rle["counts"] = rle["counts"].encode("ascii")
+                m = mask_util.decode(rle).astype(bool)
+                if m.sum() >= MIN_INSTANCE_PIXELS:
+                    cls.append(to_class[int(a["category_id"])])
+                    masks.append(m)
+            out.append(CocoImage(root / im["file_name"], w, h, np.asarray(cls, int),
+                                 np.asarray(masks, bool).reshape(-1, h, w)))
+    except (KeyError, TypeError, ValueError) as err:
+        raise _fail(path, f"not in the COCO instances format ({type(err).__name__}: {err})") from err
+    return out
