@@ -22,7 +22,7 @@ SETUP_INPUTS := requirements.lock setup.py setup.cfg package.xml \
                 scripts/setup.sh cmake/fix_wheel_includes.cmake \
                 $(shell find orchard_mapping_msgs -type f 2>/dev/null)
 
-.PHONY: setup test test-portable demo bench fixtures clean
+.PHONY: setup test test-portable demo bench fixtures clean train-setup
 
 setup: $(STAMP)
 
@@ -57,6 +57,10 @@ demo: setup
 	$(VENV)/bin/orchard-map run demo_out/sim/front demo_out/sim/back --out demo_out/result \
 	    --set trunks.source=masks --set trunks.masks_dir=demo_out/sim/masks
 	$(VENV)/bin/orchard-map evaluate --truth demo_out/sim/ground_truth.json --result demo_out/result
+
+# The training-only extra (torch, torchvision) for `orchard-map train-detector`; never part of `make setup`.
+train-setup: setup
+	$(VENV)/bin/pip install -r requirements-train.lock
 
 bench: setup
 	@shopt -s nullglob; files=(benchmarks/*.py); \

@@ -171,6 +171,99 @@ def evaluate(
         console.print(report.per_tree_table())
 
 
+def _coco_folders(data: list[Path], work: Path, every: int) -> list[Path]:
+    """COCO folders as given; simulator outputs (ground_truth.json + masks/) exported to COCO under `work`."""
+    from orchard_mapping.io.coco import export_coco
+
+    out = []
+    for d in data:
+        if (d / "instances.json").is_file() or d.suffix == ".json":
+            out.append(d)
+        elif (d / "masks").is_dir():
+            dst = work / d.name
+            if not (dst / "instances.json").is_file():
+                err_console.print(f"exporting {d} to COCO ({dst}, every {every}th frame)")
+                export_coco(d, dst, every=every)
+            out.append(dst)
+        else:
+            raise typer.BadParameter(f"{d}: neither a COCO folder (instances.json) nor a simulation (masks/)")
+    return out
+
+
+@app.command("export-coco")
+def export_coco_cmd(
+    sim: Path = typer.Argument(..., help="Simulator output folder (bags, masks/, ground_truth.json)."),
+    out: Path = typer.Option(..., help="COCO folder to write: instances.json + images/."),
+    every: int = typer.Option(5, help="Every n-th masked frame of each side."),
+) -> None:
+    """Export a simulated row's colour frames and trunk/post instance masks as COCO instances (RLE)."""
+    from orchard_mapping.errors import OrchardMappingError
+    from orchard_mapping.io.coco import export_coco
+
+    try:
+        path = export_coco(sim, out, every=every)
+    except OrchardMappingError as err:
+        raise _fail(err) from err
+    console.print(f"wrote {path}")
+
+
+@app.command("train-detector")
+def train_detector(
+    data: list[Path] = typer.Option(..., help="COCO folders or simulator outputs (repeat the option)."),
+    out: Path = typer.Option(..., help="ONNX model to write (and a .json with the training record beside it)."),
+    iterations: int = typer.Option(3000, help="SGD iterations (batch of 2 images)."),
+    every: int = typer.Option(5, help="Simulator outputs: every n-th masked frame."),
+    seed: int = typer.Option(0),
+    threads: int = typer.Option(2, help="CPU threads (a GPU is used when torch sees one)."),
+) -> None:
+    """Train the trunk/post Mask R-CNN from scratch and export it to ONNX (needs requirements-train.lock)."""
+    try:
+        import torch  # noqa: F401
+        import torchvision  # noqa: F401
+
+        from orchard_mapping.train.detector import TrainSettings, train
+    except ImportError as err:
+        raise _fail(RuntimeError(f"train-detector needs torch and torchvision: pip install -r "
+                                 f"requirements-train.lock ({err})")) from err
+    from orchard_mapping.errors import OrchardMappingError
+
+    try:
+        folders = _coco_folders(data, out.parent / ".coco_cache", every)
+        card = train(folders, out, TrainSettings(iterations=iterations, seed=seed, threads=threads),
+                     log=lambda m: err_console.print(m))
+    except (OrchardMappingError, ValueError, FloatingPointError) as err:
+        raise _fail(err) from err
+    console.print(f"wrote {out}: {card['images']} images, {card['instances']} instances, "
+                  f"{card['train_seconds']:.0f} s on {card['device']}")
+
+
+@app.command("eval-detector")
+def eval_detector(
+    model: Path = typer.Option(..., help="ONNX model following docs/detector.md."),
+    data: list[Path] = typer.Option(..., help="COCO folders or simulator outputs (repeat the option)."),
+    every: int = typer.Option(5, help="Simulator outputs: every n-th masked frame."),
+    as_json: bool = typer.Option(False, "--json"),
+) -> None:
+    """Mask AP, AP50, AP75 (pycocotools COCOeval) and ms per image of a detector on annotated frames."""
+    import dataclasses
+    import tempfile
+
+    from orchard_mapping.errors import OrchardMappingError
+    from orchard_mapping.eval.detector import evaluate_detector
+
+    try:
+        with tempfile.TemporaryDirectory() as tmp:
+            scores = evaluate_detector(model, _coco_folders(data, Path(tmp), every))
+    except OrchardMappingError as err:
+        raise _fail(err) from err
+    if as_json:
+        typer.echo(json.dumps(dataclasses.asdict(scores), indent=1))
+    else:
+        console.print(f"{scores.images} images, {scores.instances} instances: mask AP {scores.ap:.3f}, "
+                      f"AP50 {scores.ap50:.3f}, AP75 {scores.ap75:.3f} (trunk {scores.ap_trunk:.3f}, post "
+                      f"{scores.ap_post:.3f}); {scores.ms_per_image:.0f} ms per image")
+
+
 @app.command("config")
 def show_config(
     config: Optional[Path] = typer.Option(None, help="Configuration file overlaid on config/default.yaml."),

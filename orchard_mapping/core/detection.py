@@ -78,6 +78,7 @@ class OnnxTrunkDetector:
         opts = ort.SessionOptions()
         opts.intra_op_num_threads = int(threads)
         opts.inter_op_num_threads = 1
+        opts.log_severity_level = 3  # errors only: torchvision exports warn about every variable-size output
         try:
             self.session = ort.InferenceSession(str(self.path), opts, providers=["CPUExecutionProvider"])
         except Exception as err:  # onnxruntime raises its own exception types for unreadable models

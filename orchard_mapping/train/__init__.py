@@ -1,0 +1,1 @@
+"""Training of the trunk detector (needs the training extra: torch, torchvision)."""

@@ -1,0 +1,182 @@
+"""Train the trunk detector (Mask R-CNN, torchvision) from scratch and export it to ONNX.
+
+Training-only: imports torch and torchvision (requirements-train.lock); the
+runtime never imports this module. The model is a Mask R-CNN with a
+MobileNetV3-Large FPN backbone, slimmed so that the ONNX file stays small and
+a 640x480 frame runs in well under 100 ms on 2 CPU cores:
+
+  - FPN with `fpn_channels` (default 96) instead of 256 channels;
+  - box head 96x7x7 -> `representation` (default 256) -> 256, mask head with
+    two 96-channel convolutions instead of four 256-channel ones;
+  - input resized so that the short side is `min_size` (default 320 px);
+  - anchors for tall, thin objects (trunks and posts: aspect h/w 1..6).
+
+No pretrained weights are downloaded (none can be, here): everything starts
+from random initialisation, so training needs many domain-randomised frames.
+The ONNX export follows docs/detector.md (input (3, H, W) RGB in [0, 1];
+outputs boxes, labels, scores, masks).
+"""
+
+from __future__ import annotations
+
+import json
+import math
+import random
+import time
+from dataclasses import asdict, dataclass
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+from orchard_mapping.core.detection import OUTPUT_NAMES
+from orchard_mapping.io.coco import CocoImage, load_coco
+
+
+@dataclass(frozen=True)
+class TrainSettings:
+    iterations: int = 3000
+    batch: int = 2
+    lr: float = 0.02  # SGD, warm-up then cosine decay
+    weight_decay: float = 1e-4
+    warmup: int = 200
+    min_size: int = 320  # px, short side of the network input
+    max_size: int = 427
+    fpn_channels: int = 96
+    representation: int = 256
+    seed: int = 0
+    threads: int = 2
+
+
+def build_model(s: TrainSettings):
+    import torch
+    from torch import nn
+    from torchvision.models import mobilenet_v3_large
+    from torchvision.models.detection import MaskRCNN
+    from torchvision.models.detection.anchor_utils import AnchorGenerator
+    from torchvision.models.detection.backbone_utils import BackboneWithFPN
+    from torchvision.models.detection.faster_rcnn import FastRCNNPredictor, TwoMLPHead
+    from torchvision.models.detection.mask_rcnn import MaskRCNNHeads, MaskRCNNPredictor
+    from torchvision.ops import MultiScaleRoIAlign
+    from torchvision.ops.feature_pyramid_network import LastLevelMaxPool
+
+    features = mobilenet_v3_large(weights=None).features
+    # stages whose outputs feed the FPN: strides 16 and 32 (as torchvision's mobilenet FPN does)
+    stage_ends = [i for i, b in enumerate(features) if getattr(b, "_is_cn", False)] + [len(features) - 1]
+    returned = [stage_ends[-2], stage_ends[-1]]
+    return_layers = {str(i): str(k) for k, i in enumerate(returned)}
+    in_channels = [features[i].out_channels for i in returned]
+    backbone = BackboneWithFPN(nn.Sequential(*features), return_layers, in_channels, s.fpn_channels,
+                               extra_blocks=LastLevelMaxPool())
+    levels = ["0", "1", "pool"]  # 3 feature maps: anchors and both RoI poolers need 3 levels
+    anchors = AnchorGenerator(sizes=((32, 64, 128, 256, 384),) * 3,
+                              aspect_ratios=((1.0, 2.0, 4.0, 6.0),) * 3)  # h/w: trunks are tall
+    c = s.fpn_channels
+    model = MaskRCNN(
+        backbone, num_classes=None, min_size=s.min_size, max_size=s.max_size,
+        rpn_anchor_generator=anchors,
+        box_roi_pool=MultiScaleRoIAlign(levels, 7, 2), mask_roi_pool=MultiScaleRoIAlign(levels, 14, 2),
+        box_head=TwoMLPHead(c * 7 * 7, s.representation),
+        box_predictor=FastRCNNPredictor(s.representation, 3),  # background, trunk, post
+        mask_head=MaskRCNNHeads(c, [c, c], 1), mask_predictor=MaskRCNNPredictor(c, c, 3),
+        box_detections_per_img=20, rpn_pre_nms_top_n_test=300, rpn_post_nms_top_n_test=100,
+    )
+    torch.manual_seed(s.seed)
+    return model
+
+
+def _augment(img: np.ndarray, masks: np.ndarray, rng: random.Random) -> tuple[np.ndarray, np.ndarray]:
+    """Photometric and geometric jitter on top of the simulator's domain randomisation."""
+    import cv2
+
+    if rng.random() < 0.5:
+        img, masks = img[:, ::-1], masks[:, :, ::-1]
+    x = img.astype(np.float32)
+    x = x * rng.uniform(0.6, 1.4) + rng.uniform(-25, 25)  # exposure, offset
+    x = x * np.array([rng.uniform(0.85, 1.15) for _ in range(3)], np.float32)  # white balance
+    grey = x.mean(axis=2, keepdims=True)
+    x = grey + (x - grey) * rng.uniform(0.6, 1.4)  # saturation
+    if rng.random() < 0.3:
+        k = rng.choice([3, 5])
+        x = cv2.GaussianBlur(x, (k, k), 0)
+    x = x + np.random.default_rng(rng.randrange(1 << 30)).normal(0, rng.uniform(0, 6), x.shape)
+    return np.clip(x, 0, 255).astype(np.uint8), np.ascontiguousarray(masks)
+
+
+def _target(item: CocoImage, rng: random.Random):
+    import cv2
+    import torch
+
+    img = cv2.cvtColor(cv2.imread(str(item.path), cv2.IMREAD_COLOR), cv2.COLOR_BGR2RGB)
+    masks = item.masks
+    img, masks = _augment(img, masks, rng)
+    boxes = []
+    for m in masks:
+        v, u = np.nonzero(m)
+        boxes.append([u.min(), v.min(), u.max() + 1, v.max() + 1])
+    t = {"boxes": torch.tensor(np.asarray(boxes, np.float32).reshape(-1, 4)),
+         "labels": torch.tensor(item.classes, dtype=torch.int64),
+         "masks": torch.tensor(masks.astype(np.uint8))}
+    return torch.from_numpy(np.ascontiguousarray(img.transpose(2, 0, 1))).float() / 255.0, t
+
+
+def train(data: list[Path], out: Path, s: TrainSettings, log=print) -> dict[str, Any]:
+    """Train on COCO folders (`data`), export ONNX to `out`; returns what the model card reports."""
+    import torch
+
+    torch.set_num_threads(s.threads)
+    rng = random.Random(s.seed)
+    items = [im for d in data for im in load_coco(d) if len(im.classes)]
+    if not items:
+        raise ValueError(f"no annotated trunk or post in {[str(d) for d in data]}")
+    device = torch.device("cuda" if torch.cuda.is_available() else "cpu")
+    model = build_model(s).to(device)
+    params = [p for p in model.parameters() if p.requires_grad]
+    opt = torch.optim.SGD(params, lr=s.lr, momentum=0.9, weight_decay=s.weight_decay)
+
+    def lr_at(it: int) -> float:
+        if it < s.warmup:
+            return s.lr * (0.001 + 0.999 * it / s.warmup)
+        return 0.5 * s.lr * (1 + math.cos(math.pi * (it - s.warmup) / max(1, s.iterations - s.warmup)))
+
+    model.train()
+    t0 = time.perf_counter()
+    losses: list[float] = []
+    for it in range(s.iterations):
+        for g in opt.param_groups:
+            g["lr"] = lr_at(it)
+        batch = [_target(items[rng.randrange(len(items))], rng) for _ in range(s.batch)]
+        imgs = [b[0].to(device) for b in batch]
+        tg = [{k: v.to(device) for k, v in b[1].items()} for b in batch]
+        loss_dict = model(imgs, tg)
+        loss = sum(loss_dict.values())
+        if not torch.isfinite(loss):
+            raise FloatingPointError(f"training diverged at iteration {it}: {loss_dict}")
+        opt.zero_grad()
+        loss.backward()
+        torch.nn.utils.clip_grad_norm_(params, 10.0)
+        opt.step()
+        losses.append(float(loss))
+        if (it + 1) % 50 == 0 or it == 0:
+            log(f"iteration {it + 1}/{s.iterations}: loss {np.mean(losses[-50:]):.3f} "
+                f"({time.perf_counter() - t0:.0f} s)")
+    seconds = time.perf_counter() - t0
+    export_onnx(model.cpu().eval(), out, s)
+    card = {"settings": asdict(s), "train_seconds": round(seconds, 1), "device": str(device),
+            "images": len(items), "instances": int(sum(len(i.classes) for i in items)),
+            "data": [str(d) for d in data], "final_loss": float(np.mean(losses[-100:]))}
+    out.with_suffix(".json").write_text(json.dumps(card, indent=1))
+    return card
+
+
+def export_onnx(model, out: Path, s: TrainSettings, size: tuple[int, int] = (480, 640)) -> Path:
+    """Classic exporter, opset 17 (measured to work; the dynamo exporter failed on Mask R-CNN)."""
+    import torch
+
+    out.parent.mkdir(parents=True, exist_ok=True)
+    tmp = out.with_name(f".{out.name}.partial")
+    x = torch.rand(3, *size)
+    torch.onnx.export(model, ([x],), str(tmp), dynamo=False, opset_version=17, input_names=["image"],
+                      output_names=list(OUTPUT_NAMES), do_constant_folding=True)
+    tmp.replace(out)
+    return out
