@@ -190,6 +190,27 @@ def _coco_folders(data: list[Path], work: Path, every: int) -> list[Path]:
     return out
 
 
+@app.command("simulate-training")
+def simulate_training(
+    out: Path = typer.Option(..., help="COCO folder to write (instances.json + images/)."),
+    scenes: int = typer.Option(200, help="Domain-randomised rows to simulate."),
+    seed: int = typer.Option(0, help="Seed of the draws (evaluation sets: use seeds >= 100000)."),
+    trees: int = typer.Option(3),
+    rate: float = typer.Option(1.0, help="Frames per second of the recordings (1 Hz: a frame every 0.5 m)."),
+    scenario: list[str] = typer.Option([], help="Base scenarios (default: all but slope_weeds, held out)."),
+) -> None:
+    """Detector training data: rows with randomised bark, leaves, light, camera and trunks, as COCO."""
+    from orchard_mapping.errors import OrchardMappingError
+    from orchard_mapping.sim.domain import TRAIN_BASE_SCENARIOS, training_scenes
+
+    try:
+        path = training_scenes(out, scenes, seed, trees=trees, rate_hz=rate,
+                               bases=tuple(scenario) or TRAIN_BASE_SCENARIOS, log=lambda m: err_console.print(m))
+    except OrchardMappingError as err:
+        raise _fail(err) from err
+    console.print(f"wrote {path}")
+
+
 @app.command("export-coco")
 def export_coco_cmd(
     sim: Path = typer.Argument(..., help="Simulator output folder (bags, masks/, ground_truth.json)."),

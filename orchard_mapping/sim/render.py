@@ -18,8 +18,6 @@ from orchard_mapping.core.types import CameraIntrinsics
 from orchard_mapping.sim.scenario import CameraSpec
 from orchard_mapping.sim.scene import Cls, Scene
 
-_SUN = np.array([0.35, -0.45, 0.82])
-_SUN /= np.linalg.norm(_SUN)
 
 
 class SurfaceTexture:
@@ -132,6 +130,11 @@ class Renderer:
         color = self._shade(p_rest, n, cls, self._albedo_ext[prim])
         miss = ~ok
         color[miss] = self._sky(dirs[miss])
+        blur = self.scene.scenario.appearance.blur_sigma_px
+        if blur > 0:  # optical blur (domain randomisation of training frames)
+            import cv2
+
+            color = cv2.GaussianBlur(color.reshape(K.height, K.width, 3), (0, 0), blur).reshape(-1, 3)
         p_rest[~ok] = 0.0
         H, W = K.height, K.width
         return RenderOutput(
@@ -143,8 +146,9 @@ class Renderer:
 
     def _sky(self, d: np.ndarray) -> np.ndarray:
         elev = d[:, 2] * (1.0 / np.sqrt(np.einsum("ij,ij->i", d, d)))
-        base = np.array([0.62, 0.74, 0.9], np.float32)
-        top = np.array([0.42, 0.58, 0.86], np.float32)
+        ap = self.scene.scenario.appearance
+        base = np.array(ap.sky_horizon_rgb, np.float32)
+        top = np.array(ap.sky_zenith_rgb, np.float32)
         a = np.clip(elev, 0, 1)[:, None]
         return base * (1 - a) + top * a
 
@@ -160,11 +164,15 @@ class Renderer:
                  Cls.WIRE: (0.9, 0.2)}
 
     def _luts(self) -> tuple[np.ndarray, np.ndarray]:
+        ap = self.scene.scenario.appearance
         scale = np.full((len(Cls), 2), 300.0, np.float32)
         gain = np.ones((len(Cls), 2), np.float32)
         for c, sc in self._TEX_SCALE.items():
             scale[c] = sc
             gain[c] = self._TEX_GAIN[c]
+        gain[Cls.TRUNK] = gain[Cls.BRANCH] = ap.bark_texture_gain
+        if ap.texture_scale != 1.0:
+            scale *= np.float32(ap.texture_scale)
         return scale, gain
 
     def _shade(self, p: np.ndarray, n: np.ndarray, cls: np.ndarray, albedo: np.ndarray) -> np.ndarray:
@@ -186,13 +194,17 @@ class Renderer:
             k = np.float32(37.0)
             mix = np.clip((self.texture.lookup(p[:, 0] * k + 511.0, p[:, 1] * k + 97.0) - 0.5) * 5 + 0.5, 0, 1)
             mix = mix[:, None]
-            turf = (np.array([0.44, 0.35, 0.25], np.float32) * (1 - mix) + np.array([0.30, 0.44, 0.17], np.float32) * mix)
+            ap = self.scene.scenario.appearance
+            turf = np.array(ap.soil_rgb, np.float32) * (1 - mix) + np.array(ap.turf_rgb, np.float32) * mix
             alb = np.where(ground[:, None], turf, albedo)
-        ndl = n @ _SUN.astype(np.float32)
+        ap = self.scene.scenario.appearance
+        sun = np.asarray(ap.sun_dir, float)
+        sun = sun / np.linalg.norm(sun)
+        ndl = n @ sun.astype(np.float32)
         foliage = (cls == Cls.LEAF) | (cls == Cls.HEDGE) | (cls == Cls.WEED)
         # Foliage transmits light: back-lit leaves are not black.
         diffuse = np.where(foliage, np.abs(ndl) * 0.8, np.clip(ndl, 0, 1))
-        light = 0.45 + 0.75 * diffuse
+        light = ap.ambient + ap.diffuse * diffuse
         return alb * (tex * light)[:, None]
 
 

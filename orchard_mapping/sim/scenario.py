@@ -134,6 +134,35 @@ class PathSpec(_S):
     motion: MotionSpec = MotionSpec()  # walking / vehicle motion (handheld_walk, vehicle scenarios)
 
 
+RGB = tuple[float, float, float]
+
+
+class AppearanceSpec(_S):
+    """Colours, light and texture of the scene (randomised per scene for detector training data)."""
+
+    bark_rgb: RGB = (0.36, 0.27, 0.2)  # trunk and branch albedo
+    bark_gain: Range = (0.85, 1.15)  # per-tree multiplier
+    bark_texture_gain: tuple[float, float] = (0.4, 1.2)  # texture = a + b * noise: contrast of the furrows
+    leaf_rgb_a: RGB = (0.17, 0.38, 0.10)  # leaves: a mix of these two colours
+    leaf_rgb_b: RGB = (0.35, 0.48, 0.14)
+    leaf_gain: Range = (0.7, 1.25)
+    post_rgb: RGB = (0.55, 0.45, 0.33)
+    post_gain: Range = (0.85, 1.1)
+    weed_rgb: RGB = (0.28, 0.5, 0.15)
+    weed_gain: Range = (0.7, 1.25)
+    hedge_rgb: RGB = (0.2, 0.36, 0.14)
+    hedge_gain: Range = (0.6, 1.3)
+    soil_rgb: RGB = (0.44, 0.35, 0.25)  # ground: soil and turf patches
+    turf_rgb: RGB = (0.30, 0.44, 0.17)
+    sky_horizon_rgb: RGB = (0.62, 0.74, 0.9)
+    sky_zenith_rgb: RGB = (0.42, 0.58, 0.86)
+    sun_dir: tuple[float, float, float] = (0.35, -0.45, 0.82)  # world, towards the sun
+    ambient: float = Field(0.45, ge=0.0)
+    diffuse: float = Field(0.75, ge=0.0)
+    texture_scale: float = Field(1.0, gt=0.0)  # multiplies every texture's texels per metre
+    blur_sigma_px: float = Field(0.0, ge=0.0)  # optical blur of the colour image (Gaussian sd)
+
+
 class WindSpec(_S):
     enabled: bool = False
     amplitude_m: float = Field(0.03, ge=0.0)  # leaf displacement at the canopy edge
@@ -151,6 +180,7 @@ class Scenario(_S):
     camera: CameraSpec = CameraSpec()
     path: PathSpec = PathSpec()
     wind: WindSpec = WindSpec()
+    appearance: AppearanceSpec = AppearanceSpec()
     masks_every: int = Field(1, ge=0)  # write an instance mask every n-th frame (0 = none)
     canopy_alpha_m: float = Field(0.8, gt=0.0)  # alpha of the canopy-volume definition
 

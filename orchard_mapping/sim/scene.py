@@ -202,6 +202,7 @@ def _canopy_profile(u: np.ndarray) -> np.ndarray:
 def build_scene(sc: Scenario, seed: int) -> Scene:
     rng = np.random.default_rng(seed)
     row, tr, cp, fr, st = sc.row, sc.trunk, sc.canopy, sc.fruit, sc.structure
+    ap = sc.appearance
     mb = MeshBuilder()
 
     # --- tree positions along the row
@@ -250,7 +251,7 @@ def build_scene(sc: Scenario, seed: int) -> Scene:
         s = np.linspace(-0.2, st.post_height_m, 30)
         c = np.stack([np.full_like(s, px), np.zeros_like(s), pz + s], 1)
         v, t = tube(c, np.full(len(s), st.post_diameter_m / 2), 16)
-        mb.add(v, t, Cls.POST, j, np.array([0.55, 0.45, 0.33]) * rng.uniform(0.85, 1.1))
+        mb.add(v, t, Cls.POST, j, np.array(ap.post_rgb) * rng.uniform(*ap.post_gain))
         posts.append({"position": [px, 0.0, pz], "diameter_m": st.post_diameter_m, "height_m": st.post_height_m})
     pxs = sorted(post_x)
     for h in st.wire_heights_m:
@@ -279,7 +280,7 @@ def build_scene(sc: Scenario, seed: int) -> Scene:
         p2 = np.stack([bx + lean[:, 0], by + lean[:, 1], bz + hgt], 1)
         v = np.stack([p0, p1, p2], 1).reshape(-1, 3)
         t = np.arange(len(v)).reshape(-1, 3)
-        alb = np.array([0.28, 0.5, 0.15]) * rng.uniform(0.7, 1.25, (len(t), 1))
+        alb = np.array(ap.weed_rgb) * rng.uniform(*ap.weed_gain, (len(t), 1))
         mb.add(v, t, Cls.WEED, -1, alb, sway=np.tile([0.0, 0.0, 0.3], len(t)))
 
     # --- neighbouring rows as hedges in the background (depth and features at 3-6 m)
@@ -291,7 +292,7 @@ def build_scene(sc: Scenario, seed: int) -> Scene:
         HZ = HZ + terrain.height(HX, HY)
         verts = np.stack([HX, HY, HZ], -1).reshape(-1, 3)
         _, t = grid_mesh(hx, hz, np.zeros((len(hz), len(hx))))
-        alb = np.array([0.2, 0.36, 0.14]) * rng.uniform(0.6, 1.3, (len(t), 1))
+        alb = np.array(ap.hedge_rgb) * rng.uniform(*ap.hedge_gain, (len(t), 1))
         mb.add(verts, t, Cls.HEDGE, -1, alb)
 
     vertices = np.concatenate(mb.vertices)
@@ -359,7 +360,8 @@ def _build_tree(mb: MeshBuilder, rng: np.random.Generator, sc: Scenario, tid: in
     # Bark roughness: a few mm of radial noise along the axis keeps the cylinder honest.
     v, t = tube(axis, diam / 2, 20)
     t0 = mb.n_triangles
-    bark = np.array([0.36, 0.27, 0.2]) * rng.uniform(0.85, 1.15)
+    ap = sc.appearance
+    bark = np.array(ap.bark_rgb) * rng.uniform(*ap.bark_gain)
     mb.add(v, t, Cls.TRUNK, tid, bark)
     trunk_tri = np.array([t0, t0 + len(t)])
 
@@ -430,7 +432,7 @@ def _build_tree(mb: MeshBuilder, rng: np.random.Generator, sc: Scenario, tid: in
     b = np.arange(nl)[:, None] * 4
     t = np.concatenate([b + np.array([0, 1, 2]), b + np.array([0, 2, 3])], 1).reshape(-1, 3)
     hue = rng.uniform(0, 1, (nl, 1))
-    alb = (np.array([0.17, 0.38, 0.10]) * (1 - hue) + np.array([0.35, 0.48, 0.14]) * hue) * rng.uniform(0.7, 1.25, (nl, 1))
+    alb = (np.array(ap.leaf_rgb_a) * (1 - hue) + np.array(ap.leaf_rgb_b) * hue) * rng.uniform(*ap.leaf_gain, (nl, 1))
     alb = np.repeat(alb, 2, axis=0)
     t_leaf0 = mb.n_triangles
     radial = np.linalg.norm(rel[keep], axis=1) / np.maximum(envelope_r(hh[keep], phi[keep]), 0.05)
