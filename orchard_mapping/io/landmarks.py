@@ -7,7 +7,7 @@ reconstruction frame (`odom_<side>`), metres.
 
 from __future__ import annotations
 
-from collections.abc import Mapping
+from collections.abc import Iterator, Mapping
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
@@ -116,47 +116,46 @@ def _doc(path: Path, schema: str) -> Mapping[str, Any]:
     return _mapping(_get(doc, "sides", path, ""), path, "sides")
 
 
+def _entries(path: Path, schema: str, key: str) -> Iterator[tuple[str, str, Mapping[str, Any]]]:
+    """(side, dotted field name, entry) of every entry in sides.<side>.<key> of a landmarks file."""
+    for side, body in _doc(path, schema).items():
+        items = _get(_mapping(body, path, f"sides.{side}"), key, path, f"sides.{side}")
+        if not isinstance(items, list):
+            raise _fail(path, f"sides.{side}.{key}", "expected a list")
+        for i, item in enumerate(items):
+            w = f"sides.{side}.{key}[{i}]"
+            yield side, w, _mapping(item, path, w)
+
+
 def read_trunks(path: str | Path) -> list[ResultTrunk]:
     path = Path(path)
     out = []
-    for side, body in _doc(path, TRUNKS_SCHEMA).items():
-        items = _get(_mapping(body, path, f"sides.{side}"), "trunks", path, f"sides.{side}")
-        if not isinstance(items, list):
-            raise _fail(path, f"sides.{side}.trunks", "expected a list")
-        for i, t in enumerate(items):
-            w = f"sides.{side}.trunks[{i}]"
-            t = _mapping(t, path, w)
-            obs = _get(t, "observations", path, w)
-            if not isinstance(obs, list):
-                raise _fail(path, f"{w}.observations", "expected a list")
-            out.append(ResultTrunk(
-                side=side, id=int(_integer(_get(t, "id", path, w), path, f"{w}.id")),
-                base=_array(_get(t, "base", path, w), (3,), path, f"{w}.base"),
-                axis=_array(_get(t, "axis", path, w), (3,), path, f"{w}.axis"),
-                diameter_m=_number(_get(t, "diameter_m", path, w), path, f"{w}.diameter_m", nullable=True, minimum=0),
-                diameter_3d_only_m=_number(t.get("diameter_3d_only_m"), path, f"{w}.diameter_3d_only_m",
-                                           nullable=True, minimum=0),
-                length_m=float(_number(_get(t, "length_m", path, w), path, f"{w}.length_m") or 0.0),
-                stamps=np.array([_number(_get(_mapping(o, path, f"{w}.observations[{k}]"), "stamp", path,
-                                              f"{w}.observations[{k}]"), path, f"{w}.observations[{k}].stamp")
-                                 for k, o in enumerate(obs)], float),
-                flags=tuple(str(f) for f in t.get("flags", []))))
+    for side, w, t in _entries(path, TRUNKS_SCHEMA, "trunks"):
+        obs = _get(t, "observations", path, w)
+        if not isinstance(obs, list):
+            raise _fail(path, f"{w}.observations", "expected a list")
+        out.append(ResultTrunk(
+            side=side, id=int(_integer(_get(t, "id", path, w), path, f"{w}.id")),
+            base=_array(_get(t, "base", path, w), (3,), path, f"{w}.base"),
+            axis=_array(_get(t, "axis", path, w), (3,), path, f"{w}.axis"),
+            diameter_m=_number(_get(t, "diameter_m", path, w), path, f"{w}.diameter_m", nullable=True, minimum=0),
+            diameter_3d_only_m=_number(t.get("diameter_3d_only_m"), path, f"{w}.diameter_3d_only_m",
+                                       nullable=True, minimum=0),
+            length_m=float(_number(_get(t, "length_m", path, w), path, f"{w}.length_m") or 0.0),
+            stamps=np.array([_number(_get(_mapping(o, path, f"{w}.observations[{k}]"), "stamp", path,
+                                          f"{w}.observations[{k}]"), path, f"{w}.observations[{k}].stamp")
+                             for k, o in enumerate(obs)], float),
+            flags=tuple(str(f) for f in t.get("flags", []))))
     return out
 
 
 def read_grounds(path: str | Path) -> list[ResultGround]:
     path = Path(path)
     out = []
-    for side, body in _doc(path, GROUNDS_SCHEMA).items():
-        items = _get(_mapping(body, path, f"sides.{side}"), "grounds", path, f"sides.{side}")
-        if not isinstance(items, list):
-            raise _fail(path, f"sides.{side}.grounds", "expected a list")
-        for i, g in enumerate(items):
-            w = f"sides.{side}.grounds[{i}]"
-            g = _mapping(g, path, w)
-            n = _array(_get(g, "normal", path, w), (3,), path, f"{w}.normal")
-            if abs(np.linalg.norm(n) - 1.0) > 1e-3:
-                raise _fail(path, f"{w}.normal", f"expected a unit vector, got norm {np.linalg.norm(n):.4f}")
-            out.append(ResultGround(side, int(_integer(_get(g, "trunk_id", path, w), path, f"{w}.trunk_id")), n,
-                                    _array(_get(g, "point", path, w), (3,), path, f"{w}.point")))
+    for side, w, g in _entries(path, GROUNDS_SCHEMA, "grounds"):
+        n = _array(_get(g, "normal", path, w), (3,), path, f"{w}.normal")
+        if abs(np.linalg.norm(n) - 1.0) > 1e-3:
+            raise _fail(path, f"{w}.normal", f"expected a unit vector, got norm {np.linalg.norm(n):.4f}")
+        out.append(ResultGround(side, int(_integer(_get(g, "trunk_id", path, w), path, f"{w}.trunk_id")), n,
+                                _array(_get(g, "point", path, w), (3,), path, f"{w}.point")))
     return out

@@ -67,22 +67,37 @@ def _header(msg, frame_id: str, stamp: float) -> None:
     msg.header.stamp.nanosec = min(int(round((stamp - sec) * 1e9)), 999_999_999)
 
 
+def _array_msg(array_cls, item_cls, field: str, records: list, frame_id: str, stamp: float, fill):
+    """An array message (header + a list field) with one item per record, each filled by fill(item, record)."""
+    out = array_cls()
+    _header(out, frame_id, stamp)
+    for r in records:
+        m = item_cls()
+        m.header = out.header
+        m.tree_id, m.side = int(r.tree_id), r.side
+        fill(m, r)
+        getattr(out, field).append(m)
+    return out
+
+
+def _fill_trunk(m, r: TrunkRecord) -> None:
+    m.base.x, m.base.y, m.base.z = r.base
+    m.axis.x, m.axis.y, m.axis.z = r.axis
+    m.radius, m.length, m.radius_stddev, m.fit_rmse = r.radius, r.length, r.radius_stddev, r.fit_rmse
+    m.inlier_count = int(r.inlier_count)
+
+
+def _fill_ground(m, r: GroundRecord) -> None:
+    m.point.x, m.point.y, m.point.z = r.point
+    m.normal.x, m.normal.y, m.normal.z = r.normal
+    m.offset, m.fit_rmse, m.inlier_count = r.offset, r.fit_rmse, int(r.inlier_count)
+
+
 def trunks_to_msg(records: list[TrunkRecord], frame_id: str, stamp: float):
     """TrunkCylinderArray with one cylinder per record (message time `stamp`, s)."""
     from orchard_mapping_msgs.msg import TrunkCylinder, TrunkCylinderArray
 
-    out = TrunkCylinderArray()
-    _header(out, frame_id, stamp)
-    for r in records:
-        m = TrunkCylinder()
-        m.header = out.header
-        m.tree_id, m.side = int(r.tree_id), r.side
-        m.base.x, m.base.y, m.base.z = r.base
-        m.axis.x, m.axis.y, m.axis.z = r.axis
-        m.radius, m.length, m.radius_stddev, m.fit_rmse = r.radius, r.length, r.radius_stddev, r.fit_rmse
-        m.inlier_count = int(r.inlier_count)
-        out.cylinders.append(m)
-    return out
+    return _array_msg(TrunkCylinderArray, TrunkCylinder, "cylinders", records, frame_id, stamp, _fill_trunk)
 
 
 def trunks_from_msg(msg) -> tuple[str, float, list[TrunkRecord]]:
@@ -94,19 +109,10 @@ def trunks_from_msg(msg) -> tuple[str, float, list[TrunkRecord]]:
 
 
 def grounds_to_msg(records: list[GroundRecord], frame_id: str, stamp: float):
+    """LocalGroundArray with one plane per record (message time `stamp`, s)."""
     from orchard_mapping_msgs.msg import LocalGround, LocalGroundArray
 
-    out = LocalGroundArray()
-    _header(out, frame_id, stamp)
-    for r in records:
-        m = LocalGround()
-        m.header = out.header
-        m.tree_id, m.side = int(r.tree_id), r.side
-        m.point.x, m.point.y, m.point.z = r.point
-        m.normal.x, m.normal.y, m.normal.z = r.normal
-        m.offset, m.fit_rmse, m.inlier_count = r.offset, r.fit_rmse, int(r.inlier_count)
-        out.grounds.append(m)
-    return out
+    return _array_msg(LocalGroundArray, LocalGround, "grounds", records, frame_id, stamp, _fill_ground)
 
 
 def grounds_from_msg(msg) -> tuple[str, float, list[GroundRecord]]:
