@@ -46,6 +46,26 @@ class Detection:
         return Detection(class_id, float(score), box, np.asarray(mask, bool))
 
 
+def _paste(prob: np.ndarray, box: np.ndarray, H: int, W: int) -> np.ndarray:
+    """(H, W) float32: a box-relative mask (M, M) resized into its box x1 y1 x2 y2 (px) of an H x W image."""
+    import cv2
+
+    out = np.zeros((H, W), np.float32)
+    x1, y1 = int(np.floor(max(box[0], 0))), int(np.floor(max(box[1], 0)))
+    x2, y2 = int(np.ceil(min(box[2], W))), int(np.ceil(min(box[3], H)))
+    if x2 <= x1 or y2 <= y1:
+        return out
+    # the full box in pixels, then the part inside the image
+    bw, bh = max(1, int(round(box[2] - box[0]))), max(1, int(round(box[3] - box[1])))
+    patch = cv2.resize(prob, (bw, bh), interpolation=cv2.INTER_LINEAR)
+    ox, oy = int(round(box[0])), int(round(box[1]))
+    sx1, sy1 = max(0, -ox), max(0, -oy)
+    tx1, ty1 = max(0, ox), max(0, oy)
+    tx2, ty2 = min(W, ox + bw), min(H, oy + bh)
+    out[ty1:ty2, tx1:tx2] = patch[sy1:sy1 + (ty2 - ty1), sx1:sx1 + (tx2 - tx1)]
+    return out
+
+
 def resolve_model_path(model: str | Path) -> Path:
     """A relative model path is looked up from the working directory, then beside the package (models/)."""
     p = Path(model)
@@ -142,13 +162,17 @@ class OnnxTrunkDetector:
         boxes, labels, scores, masks = (np.asarray(r) for r in res)
         out = []
         sx, sy = W / w, H / h
+        full = masks.ndim == 4 and masks.shape[-2:] == (h, w)  # else box-relative (N, 1, M, M)
         for i in np.flatnonzero(scores >= self.score_threshold):
+            b = boxes[i] * np.array([sx, sy, sx, sy])
             prob = masks[i, 0] if masks.ndim == 4 else masks[i]
-            if prob.shape != (H, W):
-                prob = cv2.resize(prob.astype(np.float32), (W, H), interpolation=cv2.INTER_LINEAR)
-            m = prob >= self.mask_threshold
+            if full:
+                if prob.shape != (H, W):
+                    prob = cv2.resize(prob.astype(np.float32), (W, H), interpolation=cv2.INTER_LINEAR)
+                m = prob >= self.mask_threshold
+            else:
+                m = _paste(prob.astype(np.float32), b, H, W) >= self.mask_threshold
             if not m.any():
                 continue
-            b = boxes[i] * np.array([sx, sy, sx, sy])
             out.append(Detection(int(labels[i]), float(scores[i]), b.astype(float), m))
         return out

@@ -169,10 +169,26 @@ def train(data: list[Path], out: Path, s: TrainSettings, log=print) -> dict[str,
     return card
 
 
+def _box_masks_postprocess(self, result, image_shapes, original_image_sizes):
+    """GeneralizedRCNNTransform.postprocess without pasting masks into the image: boxes are scaled back
+    to the input image, masks stay Mask R-CNN's 28x28 probabilities per box (the runtime pastes them;
+    pasting every mask at full size inside the graph cost most of the inference time)."""
+    from torchvision.models.detection.transform import resize_boxes
+
+    for i, (pred, im_s, o_im_s) in enumerate(zip(result, image_shapes, original_image_sizes)):
+        result[i]["boxes"] = resize_boxes(pred["boxes"], im_s, o_im_s)
+    return result
+
+
 def export_onnx(model, out: Path, s: TrainSettings, size: tuple[int, int] = (480, 640)) -> Path:
-    """Classic exporter, opset 17 (measured to work; the dynamo exporter failed on Mask R-CNN)."""
+    """Classic exporter, opset 17 (measured to work; the dynamo exporter failed on Mask R-CNN).
+
+    The masks output is box-relative (N, 1, 28, 28) (docs/detector.md allows both forms)."""
+    import types
+
     import torch
 
+    model.transform.postprocess = types.MethodType(_box_masks_postprocess, model.transform)
     out.parent.mkdir(parents=True, exist_ok=True)
     tmp = out.with_name(f".{out.name}.partial")
     x = torch.rand(3, *size)

@@ -28,12 +28,13 @@ def _masks() -> np.ndarray:
 
 
 def _model(path: Path, *, outputs: tuple[str, ...] = ("boxes", "labels", "scores", "masks"),
-           input_shape: list = [3, H, W], input_type: int = TensorProto.FLOAT) -> Path:
+           input_shape: list = [3, H, W], input_type: int = TensorProto.FLOAT, box_masks: bool = False) -> Path:
     values = {
         "boxes": np.array([[20, 10, 30, 40], [50, 5, 56, 45], [0, 0, 10, 10]], np.float32),
         "labels": np.array([CLASS_TRUNK, CLASS_POST, CLASS_TRUNK], np.int64),
         "scores": np.array([0.95, 0.7, 0.2], np.float32),
-        "masks": _masks(),
+        # box-relative masks (Mask R-CNN's 28 x 28 per box) or masks pasted into the input image
+        "masks": np.full((3, 1, 28, 28), 0.9, np.float32) if box_masks else _masks(),
     }
     names = ("boxes", "labels", "scores", "masks")
     nodes = [helper.make_node("Constant", [], [out], value=numpy_helper.from_array(values[src], src))
@@ -60,6 +61,15 @@ def test_detections_are_thresholded_and_mapped_back_to_the_frame(tmp_path):
     assert (v.min(), v.max(), u.min(), u.max()) == (20, 79, 40, 59)
     assert out[1].score == pytest.approx(0.7)
     assert len(OnnxTrunkDetector(tmp_path / "m.onnx", score_threshold=0.75).detect(frame)) == 1
+
+
+def test_box_relative_masks_are_pasted_into_their_boxes(tmp_path):
+    det = OnnxTrunkDetector(_model(tmp_path / "m.onnx", box_masks=True))
+    out = det.detect(np.zeros((2 * H, 2 * W, 3), np.uint8))
+    assert [d.class_id for d in out] == [CLASS_TRUNK, CLASS_POST]
+    v, u = np.nonzero(out[0].mask)
+    assert (v.min(), v.max(), u.min(), u.max()) == (20, 79, 40, 59)  # the box (x 40-60, y 20-80) filled
+    assert out[0].mask.sum() == 20 * 60
 
 
 def test_a_missing_or_broken_model_is_one_typed_error_naming_the_file(tmp_path):
