@@ -22,6 +22,7 @@ span; its all-frame numbers are in the JSON too.
     python benchmarks/single_side.py --quick                      # 2 trees, standard: smoke run
     python benchmarks/single_side.py --matrix [--quick] [--trees 10]  # every scenario at 15/30 Hz (+10 Hz)
     python benchmarks/single_side.py --matrix --json m.json --resume  # in parts: keeps finished cases
+    python benchmarks/single_side.py --table benchmarks/results/single_side_matrix_10trees.json  # print it again
     python benchmarks/single_side.py --trees 10 30 --scenarios standard wind [--rate 15] [--seed 0]
         [--workdir DIR] [--reuse] [--baseline point_to_plane hybrid] [--json results.json]
 
@@ -414,7 +415,19 @@ def main(argv: list[str] | None = None) -> int:
                     help="with --reuse: run only the cases whose folder already holds a simulation (simulate the "
                          "others elsewhere meanwhile, then --resume)")
     ap.add_argument("--verbose", "-v", action="store_true", help="show the pipeline's warnings (relocalisations, ...)")
+    ap.add_argument("--table", type=Path, metavar="JSON",
+                    help="print the tables of a results JSON (e.g. benchmarks/results/*.json) and exit")
     args = ap.parse_args(argv)
+    if args.table is not None:
+        cases = json.loads(args.table.read_text())["cases"]
+        console.print(matrix_table(cases))
+        for c in cases:
+            for side in SIDES:
+                for e in c["ours"]["sides"][side].get("events", []):
+                    console.print(f"{c['scenario']} {c['rate_hz']:g} Hz {side}: {e}")
+        commits = sorted({c.get("commit", "?") for c in cases})
+        console.print(f"{len(cases)} cases from {args.table}; measured at {', '.join(commits)}")
+        return 0
     trees_given = args.trees != ap.get_default("trees")
     if args.matrix:
         from orchard_mapping.sim.scenario import list_scenarios
