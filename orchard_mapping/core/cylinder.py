@@ -32,6 +32,7 @@ from dataclasses import dataclass
 import numpy as np
 from scipy.optimize import least_squares
 
+from orchard_mapping.core.odometry import backproject
 from orchard_mapping.core.types import CameraIntrinsics
 from orchard_mapping.errors import OrchardMappingError
 
@@ -162,8 +163,7 @@ def _inliers(points: np.ndarray, normals: np.ndarray, cyl: Cylinder, threshold_m
 
 @dataclass(frozen=True)
 class _ViewData:
-    R_cam_odom: np.ndarray  # (3, 3)
-    t_cam_odom: np.ndarray  # (3,)
+    T_cam_odom: np.ndarray  # (4, 4)
     X: np.ndarray  # (M, 3) m camera frame: depth pixels inside the mask
     uv: np.ndarray  # (M, 2) px: those pixels
     rays: np.ndarray  # (B, 3) unit, camera frame: viewing rays through the mask's silhouette edges
@@ -181,10 +181,14 @@ def _prepare_view(view: CylinderView, intr: CameraIntrinsics, rng: np.random.Gen
     if len(u) > max_pixels:
         keep = np.sort(rng.choice(len(u), max_pixels, replace=False))
         u, v = u[keep], v[keep]
-    z = depth[v, u].astype(float)
-    X = np.stack([(u - intr.cx) / intr.fx * z, (v - intr.cy) / intr.fy * z, z], axis=1)
+    uv = np.stack([u, v], 1).astype(float)
     rays, edge_z = _silhouette_rays(mask, depth, intr)
-    return _ViewData(T_cam_odom[:3, :3], T_cam_odom[:3, 3], X, np.stack([u, v], 1).astype(float), rays, edge_z)
+    return _ViewData(T_cam_odom, backproject(uv, depth[v, u].astype(float), intr), uv, rays, edge_z)
+
+
+def _view_terms(cyl: Cylinder, d: _ViewData, intr: CameraIntrinsics) -> tuple[np.ndarray, np.ndarray]:
+    """The 2D terms (px) of one prepared view for a cylinder in odom: see `view_residuals`."""
+    return view_residuals(cyl.transformed(d.T_cam_odom), d.X, d.uv, d.rays, d.edge_depth, intr)
 
 
 def _silhouette_rays(mask: np.ndarray, depth: np.ndarray, intr: CameraIntrinsics, *, look_px: int = 8,
@@ -292,8 +296,7 @@ def fit_cylinder(points: np.ndarray, normals: np.ndarray, views: list[CylinderVi
         cyl = unpack(x)
         parts = [point_distance(P, cyl) / sigma_3d_m]
         for d in data:
-            cc = Cylinder(d.R_cam_odom @ cyl.axis, d.R_cam_odom @ cyl.origin + d.t_cam_odom, cyl.radius)
-            r_px, r_edge = view_residuals(cc, d.X, d.uv, d.rays, d.edge_depth, intr)
+            r_px, r_edge = _view_terms(cyl, d, intr)
             parts += [w2 * r_px.ravel(), w2 * r_edge]
         return np.concatenate(parts)
 
@@ -309,8 +312,7 @@ def fit_cylinder(points: np.ndarray, normals: np.ndarray, views: list[CylinderVi
     if data:
         r2 = []
         for d in data:
-            cc = Cylinder(d.R_cam_odom @ cyl.axis, d.R_cam_odom @ cyl.origin + d.t_cam_odom, cyl.radius)
-            r_px, r_edge = view_residuals(cc, d.X, d.uv, d.rays, d.edge_depth, intr)
+            r_px, r_edge = _view_terms(cyl, d, intr)
             r2 += [np.linalg.norm(r_px, axis=1), np.abs(r_edge)]
         r2c = np.concatenate(r2)
         n2, rms2 = len(r2c), float(np.sqrt(np.mean(r2c**2))) if len(r2c) else float("nan")

@@ -180,11 +180,19 @@ def fit_local_ground(points: np.ndarray, axis: np.ndarray, axis_point: np.ndarra
     n, d0, inl = _refine(pts, normals[best[1]], float(offsets[best[1]]), t)
     if n @ up < cos_max or inl.sum() < 3:
         return None
-    resid = pts[inl] @ n + d0
-    # the point of the plane on the trunk axis (the axis is never parallel to the plane: angle checked above)
-    s = -(p_axis @ n + d0) / float(up @ n)
-    return LocalGroundFit(normal=n, offset=d0, point=p_axis + s * up, inliers=int(inl.sum()),
-                          rmse_m=float(np.sqrt(np.mean(resid**2))), candidates=n_pts)
+    return _ground_fit(pts, inl, n, d0, up, p_axis)
+
+
+def _ground_fit(pts: np.ndarray, inliers: np.ndarray, n: np.ndarray, d0: float, up: np.ndarray,
+                p_axis: np.ndarray) -> LocalGroundFit:
+    """The plane n . p + d0 = 0 with its fit statistics over pts[inliers]; its point is where the axis
+    (p_axis, up) meets it (the foot of p_axis on the plane if the axis runs parallel to it)."""
+    resid = pts[inliers] @ n + d0
+    denom = float(up @ n)
+    point = p_axis - (p_axis @ n + d0) * n if abs(denom) < 1e-6 else p_axis - (p_axis @ n + d0) / denom * up
+    return LocalGroundFit(normal=n, offset=d0, point=point, inliers=int(len(resid)),
+                          rmse_m=float(np.sqrt(np.mean(resid**2))) if len(resid) else float("nan"),
+                          candidates=len(pts))
 
 
 def fit_plane_plain_ransac(points: np.ndarray, params: GroundParams, seed: int, up_hint: np.ndarray,
@@ -204,10 +212,4 @@ def fit_plane_plain_ransac(points: np.ndarray, params: GroundParams, seed: int, 
     up = _unit(up_hint, "up_hint")
     if n @ up < 0:
         n, d0 = -n, -d0
-    resid = pts[inliers] @ n + d0
-    p_axis = np.asarray(axis_point, float).reshape(3)
-    denom = float(up @ n)
-    point = p_axis - (p_axis @ n + d0) * n if abs(denom) < 1e-6 else p_axis - (p_axis @ n + d0) / denom * up
-    return LocalGroundFit(normal=n, offset=d0, point=point, inliers=len(inliers),
-                          rmse_m=float(np.sqrt(np.mean(resid**2))) if len(inliers) else float("nan"),
-                          candidates=len(pts))
+    return _ground_fit(pts, np.asarray(inliers, int), n, d0, up, np.asarray(axis_point, float).reshape(3))

@@ -29,9 +29,12 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
-from orchard_mapping.core.cylinder import Cylinder, CylinderError, CylinderFit, CylinderView, fit_cylinder
+from orchard_mapping.core.cylinder import (Cylinder, CylinderError, CylinderFit, CylinderView, fit_cylinder,
+                                           point_distance)
+from orchard_mapping.core.geometry import transform_points
 from orchard_mapping.core.detection import CLASS_TRUNK, Detection
 from orchard_mapping.core.ground import GroundParams, LocalGroundFit, fit_local_ground, ground_neighbourhood
+from orchard_mapping.core.odometry import backproject
 from orchard_mapping.core.types import CameraIntrinsics
 from orchard_mapping.errors import OrchardMappingError
 
@@ -154,31 +157,23 @@ def side_up_direction(poses: np.ndarray) -> np.ndarray:
 
 
 def _backproject(depth: np.ndarray, mask: np.ndarray, intr: CameraIntrinsics, T_odom_cam: np.ndarray) -> np.ndarray:
-    """(M, 3) odom points of the mask's pixels with depth."""
+    """(M, 3) odom points of the mask's pixels with depth (row-major pixel order)."""
     v, u = np.nonzero(mask & (depth > 0))
-    z = depth[v, u].astype(float)
-    Xc = np.stack([(u - intr.cx) / intr.fx * z, (v - intr.cy) / intr.fy * z, z], axis=1)
-    return Xc @ T_odom_cam[:3, :3].T + T_odom_cam[:3, 3]
+    uv = np.stack([u, v], axis=1).astype(float)
+    return transform_points(T_odom_cam, backproject(uv, depth[v, u].astype(float), intr))
 
 
 def _associate(places: np.ndarray, up: np.ndarray, radius: float) -> np.ndarray:
-    """(N,) cluster label of each detection place (N, 3): single linkage across the up direction."""
+    """(N,) cluster label of each detection place (N, 3): single linkage across the up direction (the
+    connected components of the graph joining places closer than `radius`)."""
+    from scipy.sparse import coo_matrix
+    from scipy.sparse.csgraph import connected_components
+    from scipy.spatial import cKDTree
+
     flat = places - np.outer(places @ up, up)  # (N, 3) horizontal positions
-    n = len(flat)
-    label = -np.ones(n, int)
-    k = 0
-    for i in range(n):
-        if label[i] >= 0:
-            continue
-        label[i] = k
-        stack = [i]
-        while stack:
-            j = stack.pop()
-            near = np.flatnonzero((label < 0) & (np.linalg.norm(flat - flat[j], axis=1) < radius))
-            label[near] = k
-            stack.extend(near.tolist())
-        k += 1
-    return label
+    pairs = cKDTree(flat).query_pairs(radius, output_type="ndarray")  # (E, 2)
+    graph = coo_matrix((np.ones(len(pairs)), (pairs[:, 0], pairs[:, 1])), shape=(len(flat), len(flat)))
+    return connected_components(graph, directed=False)[1]
 
 
 def _trunks_up(det_points: list[np.ndarray], label: np.ndarray, up0: np.ndarray) -> np.ndarray:
@@ -244,11 +239,8 @@ def _band_rows_mask(det_mask: np.ndarray, depth: np.ndarray, intr: CameraIntrins
     out = np.zeros_like(det_mask)
     if len(v) == 0:
         return out
-    rows = np.unique(v)
-    # median height per row: sort by row, split
-    order = np.argsort(v, kind="stable")
-    splits = np.searchsorted(v[order], rows)
-    med = np.array([np.median(c) for c in np.split(h[order], splits[1:])])
+    rows, starts = np.unique(v, return_index=True)  # v is sorted: np.nonzero scans row by row
+    med = np.array([np.median(c) for c in np.split(h, starts[1:])])  # median height per row
     keep = rows[(med >= h_lo) & (med <= h_hi)]
     out[keep] = det_mask[keep]
     return out
@@ -324,16 +316,14 @@ def _model_trunk(lm_id: int, obs: list[tuple[TrunkView, Detection]], places: np.
     except CylinderError:
         return None
     axis = coarse.cylinder.axis
-    on_trunk = np.abs(np.linalg.norm((trunk - coarse.cylinder.origin) - np.outer((trunk - coarse.cylinder.origin) @ axis, axis), axis=1)
-                      - coarse.cylinder.radius) < 2 * params.ransac_threshold_m
+    on_trunk = np.abs(point_distance(trunk, coarse.cylinder)) < 2 * params.ransac_threshold_m
     h_axis = trunk @ axis
     h_bottom = float(np.percentile(h_axis[on_trunk], 1)) if on_trunk.any() else float(h_axis.min())
     h_top = float(np.percentile(h_axis[on_trunk], 99)) if on_trunk.any() else float(h_axis.max())
     origin = coarse.cylinder.origin
     # 4. local ground with the trunk axis prior; the trunk's own surface is never ground
     o_bottom = origin + (h_bottom - origin @ axis) * axis
-    rel = local - origin
-    off_trunk = np.linalg.norm(rel - np.outer(rel @ axis, axis), axis=1) > coarse.cylinder.radius + 0.02
+    off_trunk = point_distance(local, coarse.cylinder) > 0.02
     cand = ground_neighbourhood(local, o_bottom, axis, ground_params, trunk_bottom_height=0.0)
     cand = cand[off_trunk[cand]]
     ground = fit_local_ground(local[cand], axis, o_bottom, ground_params, rng)
@@ -356,11 +346,9 @@ def _model_trunk(lm_id: int, obs: list[tuple[TrunkView, Detection]], places: np.
             band_views.append(CylinderView(v.T_odom_cam, m, v.depth))
     band: CylinderFit | None = None
     baseline: CylinderFit | None = None
-    if ground is None:
-        pass
-    elif in_band.sum() < params.min_band_points or not band_views:
+    if ground is not None and (in_band.sum() < params.min_band_points or not band_views):
         flags.append("hidden_at_diameter_height")
-    else:
+    elif ground is not None:
         P, N = trunk[in_band], normals[in_band]
         kw = dict(up=axis, threshold_m=params.ransac_threshold_m, iterations=params.ransac_iterations,
                   max_axis_angle_deg=15.0, radius_range_m=radius_range, sigma_3d_m=params.sigma_3d_m,

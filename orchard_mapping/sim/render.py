@@ -187,6 +187,7 @@ class Renderer:
         u = np.where(z_dom, p[:, 0], horiz) * s[:, 0]
         v = np.where(z_dom, p[:, 1] * s[:, 0], p[:, 2] * s[:, 1])
         tex = g[:, 0] + g[:, 1] * self.texture.lookup(u, v)
+        ap = self.scene.scenario.appearance
         alb = albedo
         ground = cls == Cls.GROUND
         if ground.any():
@@ -194,10 +195,8 @@ class Renderer:
             k = np.float32(37.0)
             mix = np.clip((self.texture.lookup(p[:, 0] * k + 511.0, p[:, 1] * k + 97.0) - 0.5) * 5 + 0.5, 0, 1)
             mix = mix[:, None]
-            ap = self.scene.scenario.appearance
             turf = np.array(ap.soil_rgb, np.float32) * (1 - mix) + np.array(ap.turf_rgb, np.float32) * mix
             alb = np.where(ground[:, None], turf, albedo)
-        ap = self.scene.scenario.appearance
         sun = np.asarray(ap.sun_dir, float)
         sun = sun / np.linalg.norm(sun)
         ndl = n @ sun.astype(np.float32)

@@ -323,6 +323,13 @@ def local_ground_plane(terrain: Terrain, x: float, y: float, radius: float = 0.5
     a = np.linspace(0, 2 * np.pi, 24, endpoint=False)
     px = np.concatenate([[x], (x + r[:, None] * np.cos(a)).ravel()])
     py = np.concatenate([[y], (y + r[:, None] * np.sin(a)).ravel()])
+    return terrain_plane(terrain, px, py, x, y)
+
+
+def terrain_plane(terrain: Terrain, px: np.ndarray, py: np.ndarray, x: float, y: float
+                  ) -> tuple[np.ndarray, np.ndarray]:
+    """Least-squares plane z = gx (x' - x) + gy (y' - y) + c of the terrain heights at (px, py) (N,):
+    its point under (x, y) and its unit up normal."""
     pz = terrain.height(px, py)
     A = np.stack([px - x, py - y, np.ones_like(px)], 1)
     (gx, gy, c), *_ = np.linalg.lstsq(A, pz, rcond=None)

@@ -11,7 +11,7 @@ from scipy.spatial import Delaunay
 
 from orchard_mapping.core.types import CameraIntrinsics
 from orchard_mapping.sim.render import RenderOutput
-from orchard_mapping.sim.scene import Cls, Scene, TreeGeom
+from orchard_mapping.sim.scene import Cls, Scene, TreeGeom, terrain_plane
 
 CANOPY_VOLUME_DEFINITION = (
     "Volume (m^3) of the alpha complex with alpha = {alpha} m of points sampled on the tree's own canopy "
@@ -151,14 +151,10 @@ class VisibilityAccumulator:
             return None
         x = tree.ground_point[0] - LOCAL_GROUND_RADIUS_M + (i + 0.5) * GROUND_CELL_M
         y = tree.ground_point[1] - LOCAL_GROUND_RADIUS_M + (j + 0.5) * GROUND_CELL_M
-        z = self.scene.terrain.height(x, y)
-        A = np.stack([x - tree.ground_point[0], y - tree.ground_point[1], np.ones_like(x)], 1)
-        (gx, gy, c), *_ = np.linalg.lstsq(A, z, rcond=None)
-        n = np.array([-gx, -gy, 1.0])
-        n /= np.linalg.norm(n)
+        point, n = terrain_plane(self.scene.terrain, x, y, float(tree.ground_point[0]), float(tree.ground_point[1]))
         disk = np.pi * LOCAL_GROUND_RADIUS_M**2 / GROUND_CELL_M**2
-        return {"point": np.round([tree.ground_point[0], tree.ground_point[1], c], 5).tolist(),
-                "normal": np.round(n, 6).tolist(), "seen_fraction": round(min(1.0, len(i) / disk), 4)}
+        return {"point": np.round(point, 5).tolist(), "normal": np.round(n, 6).tolist(),
+                "seen_fraction": round(min(1.0, len(i) / disk), 4)}
 
     def summary(self, tree: TreeGeom) -> dict:
         leaves = tree.leaf_tri
