@@ -192,7 +192,9 @@ def fuse_keyframes(seq: RGBDSequence, side: str, labelled: bool, frame_index: li
             if f.index in pose_of and f.depth is not None:
                 yield f.depth, f.color, pose_of[f.index]
 
-    return fuse_side(frames(), seq.intrinsics, keyframes=None, **asdict(cfg.fusion))
+    # the trunk detector needs the colour of the cleaned keyframes; without it, they are not kept
+    return fuse_side(frames(), seq.intrinsics, keyframes=None, keep_color=cfg.trunks.source == "model",
+                     **asdict(cfg.fusion))
 
 
 def write_cloud(path: Path, points: np.ndarray, colors: np.ndarray) -> None:

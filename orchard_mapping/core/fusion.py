@@ -328,7 +328,8 @@ class FusionResult:
     seconds_per_frame: float  # s, mean TSDF integration time per integrated frame
     seconds_total: float  # s, the whole call
     mode: str  # "side" (one grid for the side) or "local" (a grid of the nearest frames per keyframe)
-    cleaned_color: dict[int, np.ndarray] = field(default_factory=dict)  # same keys: (H, W, 3) uint8 RGB (detection)
+    # same keys: (H, W, 3) uint8 RGB, the trunk detector's input; only with keep_color (else empty)
+    cleaned_color: dict[int, np.ndarray] = field(default_factory=dict)
 
 
 def _nearest_frames(centres: np.ndarray, k: int, n: int) -> np.ndarray:
@@ -371,7 +372,7 @@ def fuse_side(frames: Iterable[tuple[np.ndarray, np.ndarray, np.ndarray]], intr:
               rel_tol: float = DEFAULT_REL_TOL, abs_tol_m: float = DEFAULT_ABS_TOL_M,
               silhouette_tol_m: float = DEFAULT_SILHOUETTE_TOL_M, float_radius_m: float = DEFAULT_FLOAT_RADIUS_M,
               float_min_neighbours: int = DEFAULT_FLOAT_MIN_NEIGHBOURS, fused_spacing_m: float = 0.0,
-              cleaned_spacing_m: float = 0.0) -> FusionResult:
+              cleaned_spacing_m: float = 0.0, keep_color: bool = False) -> FusionResult:
     """Fuse one side's frames (depth (H, W) m, colour (H, W, 3) uint8, T_odom_cam (4, 4)) and clean keyframe depth.
 
     Every frame goes into one TSDF grid, whose surface is the side's cloud. The cleaned depth of a
@@ -385,6 +386,7 @@ def fuse_side(frames: Iterable[tuple[np.ndarray, np.ndarray, np.ndarray]], intr:
     keyframes: positions in `frames` to clean (None = every frame); of these only those at least
     cleaned_spacing_m (camera centres) after the previous cleaned one are cleaned (0 = all).
     fused_spacing_m: frames nearer than this to the last integrated one are not integrated (0 = all).
+    keep_color: also keep the colour image of every cleaned keyframe (for the trunk detector; ~1 MB each).
     """
     t_start = time.perf_counter()
     window_px = int(np.ceil(silhouette_tol_m * max(intr.fx, intr.fy) / 1.0))  # px at 1 m depth
@@ -401,7 +403,7 @@ def fuse_side(frames: Iterable[tuple[np.ndarray, np.ndarray, np.ndarray]], intr:
     key_set = None if keyframes is None else set(int(k) for k in keyframes)
     kept: list[tuple[np.ndarray, np.ndarray, np.ndarray]] = []  # frames held for local grids
     raw_key: dict[int, np.ndarray] = {}  # keyframe -> checked raw depth
-    color_key: dict[int, np.ndarray] = {}  # keyframe -> its colour image (the trunk detector's input)
+    color_key: dict[int, np.ndarray] = {}  # keyframe -> its colour image (keep_color)
     poses: list[np.ndarray] = []
     last_cleaned: np.ndarray | None = None  # camera centre of the last frame kept for cleaning
     n = 0
@@ -416,7 +418,8 @@ def fuse_side(frames: Iterable[tuple[np.ndarray, np.ndarray, np.ndarray]], intr:
         if (key_set is None or i in key_set) and (
                 last_cleaned is None or np.linalg.norm(Tc[:3, 3] - last_cleaned) >= cleaned_spacing_m):
             raw_key[i] = d
-            color_key[i] = np.asarray(color)
+            if keep_color:
+                color_key[i] = np.asarray(color)
             last_cleaned = Tc[:3, 3]
         if mode == "local":
             kept.append((d, np.asarray(color), Tc))

@@ -12,7 +12,7 @@ import cv2
 import numpy as np
 
 from orchard_mapping.core.detection import CLASS_NAMES, OnnxTrunkDetector
-from orchard_mapping.io.coco import load_coco
+from orchard_mapping.io.coco import load_coco, mask_rle
 
 __all__ = ["DetectorScores", "evaluate_detector"]
 
@@ -41,7 +41,7 @@ def evaluate_detector(model: str | Path, data: list[Path], threads: int = 2) -> 
             img_id = len(images) + 1
             images.append({"id": img_id, "width": im.width, "height": im.height, "file_name": str(im.path)})
             for c, m in zip(im.classes, im.masks):
-                rle = mask_util.encode(np.asfortranarray(m.astype(np.uint8)))
+                rle = mask_rle(m)
                 anns.append({"id": len(anns) + 1, "image_id": img_id, "category_id": int(c), "segmentation": rle,
                              "area": float(m.sum()), "bbox": list(mask_util.toBbox(rle)), "iscrowd": 0})
             rgb = cv2.cvtColor(cv2.imread(str(im.path), cv2.IMREAD_COLOR), cv2.COLOR_BGR2RGB)
@@ -49,7 +49,7 @@ def evaluate_detector(model: str | Path, data: list[Path], threads: int = 2) -> 
             found = det.detect(rgb, where=str(im.path))
             times.append(time.perf_counter() - t0)
             for d in found:
-                rle = mask_util.encode(np.asfortranarray(d.mask.astype(np.uint8)))
+                rle = mask_rle(d.mask)
                 results.append({"image_id": img_id, "category_id": d.class_id, "segmentation": rle,
                                 "score": d.score})
     gt = COCO()

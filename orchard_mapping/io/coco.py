@@ -20,7 +20,7 @@ import numpy as np
 from orchard_mapping.core.detection import CLASS_NAMES, CLASS_POST, CLASS_TRUNK, DetectorError
 from orchard_mapping.io.results import atomic_write_json
 
-__all__ = ["CocoImage", "export_coco", "load_coco"]
+__all__ = ["CocoImage", "export_coco", "load_coco", "mask_rle"]
 
 MIN_INSTANCE_PIXELS = 30  # slivers at the image border teach nothing
 
@@ -34,11 +34,16 @@ class CocoImage:
     masks: np.ndarray  # (N, H, W) bool
 
 
+def mask_rle(mask: np.ndarray) -> dict:
+    """COCO compressed RLE of a boolean mask (H, W); `counts` as bytes (pycocotools' own form)."""
+    from pycocotools import mask as mask_util
+
+    return mask_util.encode(np.asfortranarray(np.asarray(mask, np.uint8)))
+
+
 def export_coco(sim_dir: str | Path, out_dir: str | Path, *, every: int = 5,
                 sides: tuple[str, ...] = ("front", "back")) -> Path:
     """Write every `every`-th masked frame of a simulation as JPEG + instances.json; returns its path."""
-    from pycocotools import mask as mask_util
-
     from orchard_mapping.io.bags import read_rgbd
     from orchard_mapping.io.masks import MaskFolderDetector
 
@@ -47,12 +52,12 @@ def export_coco(sim_dir: str | Path, out_dir: str | Path, *, every: int = 5,
     images, annotations = [], []
     for side in sides:
         masks = MaskFolderDetector(sim_dir / "masks", side)
+        if not len(masks.stamps):
+            continue
         for n, frame in enumerate(read_rgbd(sim_dir / side)):
             if n % every:
                 continue
             dets = masks.detect_at(frame.stamp)
-            if not len(masks.stamps):
-                break
             name = f"images/{sim_dir.name}_{side}_{frame.index:06d}.jpg"
             bgr = cv2.cvtColor(frame.color, cv2.COLOR_RGB2BGR)
             if not cv2.imwrite(str(out_dir / name), bgr, [cv2.IMWRITE_JPEG_QUALITY, 95]):
@@ -64,8 +69,8 @@ def export_coco(sim_dir: str | Path, out_dir: str | Path, *, every: int = 5,
                 area = int(d.mask.sum())
                 if area < MIN_INSTANCE_PIXELS:
                     continue
-                rle = mask_util.encode(np.asfortranarray(d.mask.astype(np.uint8)))
-                rle["counts"] = rle["counts"].decode("ascii")
+                rle = mask_rle(d.mask)
+                rle["counts"] = rle["counts"].decode("ascii")  # JSON
                 x1, y1, x2, y2 = (float(v) for v in d.box)
                 annotations.append({"id": len(annotations) + 1, "image_id": img_id, "category_id": d.class_id,
                                     "segmentation": rle, "area": area, "bbox": [x1, y1, x2 - x1, y2 - y1],

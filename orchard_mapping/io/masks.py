@@ -51,16 +51,14 @@ class MaskFolderDetector:
                     stamps.append(float(row["stamp"]))
                 except (KeyError, TypeError, ValueError) as err:
                     raise DetectorError(f"{index}: line {i + 2}: expected 'frame,stamp', got {row}") from err
-        order = np.argsort(stamps)
-        self.stamps = np.asarray(stamps, float)[order]
-        self.frames = np.asarray(frames, int)[order]
+        self.stamps = np.asarray(stamps, float)
+        self.frames = np.asarray(frames, int)
         self.tol = stamp_tol_s
 
     def detect_at(self, stamp: float) -> list[Detection]:
         if not len(self.stamps):
             return []
-        i = int(np.clip(np.searchsorted(self.stamps, stamp), 1, len(self.stamps) - 1)) if len(self.stamps) > 1 else 0
-        j = i if len(self.stamps) == 1 or abs(self.stamps[i] - stamp) < abs(self.stamps[i - 1] - stamp) else i - 1
+        j = int(np.argmin(np.abs(self.stamps - stamp)))  # the mask nearest in time
         if abs(self.stamps[j] - stamp) > self.tol:
             return []
         path = self.dir / f"{self.frames[j]:06d}.png"
