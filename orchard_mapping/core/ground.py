@@ -12,7 +12,11 @@ paper changes RANSAC's degenerate condition with the trunk axis as a prior:
     than `max_below_fraction` of its inliers is rejected (a plane on weed tops
     or on a leaf layer has the true ground below it).
 
-`fit_local_ground` does this; `fit_plane_plain_ransac` (Open3D's
+Real ground is not a plane (undulation, roughness), so the RANSAC plane is
+then refitted by least squares to the lowest points (one per 4 cm cell) within
+`refine_band_m` of it, and a plane with less than `min_support_m2` of ground
+within that band is not reported (a glimpse of ground between weeds fixes no
+tilt). `fit_local_ground` does this; `fit_plane_plain_ransac` (Open3D's
 `segment_plane`) is kept as the baseline the paper compares with. Frames: all
 points and vectors in the side's reconstruction frame (odom_<side>), metres.
 """
@@ -35,6 +39,9 @@ __all__ = [
 ]
 
 
+ENVELOPE_CELL_M = 0.04  # m, cells of the lower envelope (one point each: the lowest along the axis)
+
+
 class GroundError(OrchardMappingError, ValueError):
     """A local ground cannot be fitted (too few points, bad prior)."""
 
@@ -55,15 +62,32 @@ class GroundParams:
     max_below_fraction: float = 0.05  # points further than t_s below the plane, as a share of its inliers
     iterations: int = 300
     min_points: int = 50  # fewer candidate points: no ground for this tree
+    # m. Real ground is not a plane: undulation and roughness leave only a strip of it within t_s of the
+    # RANSAC plane, and that strip's tilt is not the tilt of the ground around the tree. The plane is
+    # refitted (least squares, refine_iterations times) to the lower-envelope cells within this band of
+    # it: wider than the ground's wobble, lower than weeds. Measured on slope_weeds (10 trees, seed 0,
+    # true masks), normal error vs the seen ground, median front/back: 3.4/3.8 deg -> 0.6/4.1 deg.
+    refine_band_m: float = 0.05
+    refine_iterations: int = 5
+    # m^2 of lower-envelope cells within refine_band_m of the plane: less ground seen than this and the
+    # plane is not reported (a glimpse of ground between weeds gives any tilt; slope_weeds seed 0: trees
+    # whose ground was seen over less than ~10 % of the 0.5 m disk came out 15-39 deg off).
+    min_support_m2: float = 0.10
+    # m. A tree without a local ground still gets its diameter height from the ground over this wider
+    # disk (flagged; 0 = off).
+    wide_radius_m: float = 1.0
 
     def __post_init__(self) -> None:
-        for name in ("radius_m", "inlier_threshold_m", "max_axis_angle_deg", "max_height_above_trunk_bottom_m"):
+        for name in ("radius_m", "inlier_threshold_m", "max_axis_angle_deg", "max_height_above_trunk_bottom_m",
+                     "refine_band_m"):
             if not getattr(self, name) > 0:
                 raise GroundError(f"ground.{name} must be > 0, got {getattr(self, name)!r}")
         if not 0.0 <= self.max_below_fraction < 1.0:
             raise GroundError(f"ground.max_below_fraction must be in [0, 1), got {self.max_below_fraction!r}")
         if self.iterations < 1 or self.min_points < 3:
             raise GroundError("ground.iterations must be >= 1 and ground.min_points >= 3")
+        if self.refine_iterations < 0 or self.min_support_m2 < 0 or self.wide_radius_m < 0:
+            raise GroundError("ground.refine_iterations, ground.min_support_m2 and ground.wide_radius_m must be >= 0")
 
 
 @dataclass(frozen=True)
@@ -76,6 +100,7 @@ class LocalGroundFit:
     inliers: int  # points within t_s of the plane
     rmse_m: float  # m, RMS point-to-plane distance of the inliers
     candidates: int  # points the fit was chosen from
+    support_m2: float = float("nan")  # m^2, ground area (lower-envelope cells) within refine_band_m of it
 
     def height_of(self, p: np.ndarray) -> np.ndarray:
         """Signed height (m) of points (..., 3) above the plane."""
@@ -151,7 +176,7 @@ def fit_local_ground(points: np.ndarray, axis: np.ndarray, axis_point: np.ndarra
     # Samples come from the lower envelope (the lowest point of each 4 cm cell across the axis): the
     # ground is the lower boundary, and under weeds or a leaf wall it is a small share of all points
     # (6 % in the hidden-trunk test), which uniform sampling would rarely draw three times.
-    pool = _lower_envelope(pts, up, 0.04)
+    pool = _lower_envelope(pts, up, ENVELOPE_CELL_M)
     idx = pool[rng.integers(0, len(pool), size=(params.iterations, 3))]  # (I, 3) samples
     a, b, c = pts[idx[:, 0]], pts[idx[:, 1]], pts[idx[:, 2]]  # (I, 3) each
     normals = np.cross(b - a, c - a)  # (I, 3)
@@ -178,13 +203,18 @@ def fit_local_ground(points: np.ndarray, axis: np.ndarray, axis_point: np.ndarra
     if best is None:
         return None
     n, d0, inl = _refine(pts, normals[best[1]], float(offsets[best[1]]), t)
-    if n @ up < cos_max or inl.sum() < 3:
+    envelope = pts[pool]  # (C, 3) one point per cell: area, not point density, weighs the refit
+    for _ in range(params.refine_iterations):
+        n, d0, _ = _refine(envelope, n, d0, params.refine_band_m)
+    support = float(np.count_nonzero(np.abs(envelope @ n + d0) < params.refine_band_m)) * ENVELOPE_CELL_M**2
+    inl = np.abs(pts @ n + d0) < t
+    if n @ up < cos_max or inl.sum() < 3 or support < params.min_support_m2:
         return None
-    return _ground_fit(pts, inl, n, d0, up, p_axis)
+    return _ground_fit(pts, inl, n, d0, up, p_axis, support)
 
 
 def _ground_fit(pts: np.ndarray, inliers: np.ndarray, n: np.ndarray, d0: float, up: np.ndarray,
-                p_axis: np.ndarray) -> LocalGroundFit:
+                p_axis: np.ndarray, support_m2: float = float("nan")) -> LocalGroundFit:
     """The plane n . p + d0 = 0 with its fit statistics over pts[inliers]; its point is where the axis
     (p_axis, up) meets it (the foot of p_axis on the plane if the axis runs parallel to it)."""
     resid = pts[inliers] @ n + d0
@@ -192,7 +222,7 @@ def _ground_fit(pts: np.ndarray, inliers: np.ndarray, n: np.ndarray, d0: float, 
     point = p_axis - (p_axis @ n + d0) * n if abs(denom) < 1e-6 else p_axis - (p_axis @ n + d0) / denom * up
     return LocalGroundFit(normal=n, offset=d0, point=point, inliers=int(len(resid)),
                           rmse_m=float(np.sqrt(np.mean(resid**2))) if len(resid) else float("nan"),
-                          candidates=len(pts))
+                          candidates=len(pts), support_m2=support_m2)
 
 
 def fit_plane_plain_ransac(points: np.ndarray, params: GroundParams, seed: int, up_hint: np.ndarray,

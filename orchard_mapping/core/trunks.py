@@ -25,7 +25,7 @@ Frames: everything in odom_<side> (metres) unless a name says `_cam`.
 
 from __future__ import annotations
 
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 
 import numpy as np
 
@@ -246,6 +246,21 @@ def _band_rows_mask(det_mask: np.ndarray, depth: np.ndarray, intr: CameraIntrins
     return out
 
 
+def _wide_ground(points: np.ndarray, o_bottom: np.ndarray, axis: np.ndarray, trunk: Cylinder,
+                 ground_params: GroundParams, rng: np.random.Generator) -> LocalGroundFit | None:
+    """The ground over a disk of ground.wide_radius_m around the trunk (None if off or not found).
+
+    Where weeds or leaves hide the local ground the diameter is still wanted, and its height needs only
+    a rough ground: a wider disk shows more ground between the weeds. The plane is not the tree's local
+    ground (the terrain within 0.5 m) and is not reported as one."""
+    if ground_params.wide_radius_m <= ground_params.radius_m:
+        return None
+    wide = replace(ground_params, radius_m=ground_params.wide_radius_m)
+    cand = ground_neighbourhood(points, o_bottom, axis, wide, trunk_bottom_height=0.0)
+    cand = cand[point_distance(points[cand], trunk) > 0.02]
+    return fit_local_ground(points[cand], axis, o_bottom, wide, rng)
+
+
 def build_trunk_landmarks(points: np.ndarray, poses: np.ndarray, views: list[TrunkView], intr: CameraIntrinsics,
                           params: TrunkParams, ground_params: GroundParams, rng: np.random.Generator
                           ) -> list[TrunkLandmark]:
@@ -328,27 +343,28 @@ def _model_trunk(lm_id: int, obs: list[tuple[TrunkView, Detection]], places: np.
     cand = cand[off_trunk[cand]]
     ground = fit_local_ground(local[cand], axis, o_bottom, ground_params, rng)
     h_lo, h_hi = params.diameter_height_m - params.band_m / 2, params.diameter_height_m + params.band_m / 2
+    height_ground = ground  # the plane the diameter height is measured from
+    base = o_bottom if ground is None else ground.point
     if ground is None:
-        # Without a ground the diameter height is unknown: no diameter rather than one at a guessed height.
         flags.append("no_ground")
-        base = o_bottom
-        band_h = np.full(len(trunk), np.nan)
-    else:
-        base = ground.point
-        band_h = ground.height_of(trunk)
+        height_ground = _wide_ground(points, o_bottom, axis, coarse.cylinder, ground_params, rng)
+        if height_ground is not None:
+            flags.append("diameter_height_from_wide_ground")
+    # Without any ground the diameter height is unknown: no diameter rather than one at a guessed height.
+    band_h = np.full(len(trunk), np.nan) if height_ground is None else height_ground.height_of(trunk)
     in_band = (band_h >= h_lo) & (band_h <= h_hi)
     band_views: list[CylinderView] = []
     band_rows: list[np.ndarray] = []
     for v, det in obs:
-        m = _band_rows_mask(det.mask, v.depth, intr, v.T_odom_cam, ground, h_lo, h_hi, h_bottom, axis)
+        m = _band_rows_mask(det.mask, v.depth, intr, v.T_odom_cam, height_ground, h_lo, h_hi, h_bottom, axis)
         band_rows.append(m)
         if m.sum() >= params.min_mask_pixels // 4:
             band_views.append(CylinderView(v.T_odom_cam, m, v.depth))
     band: CylinderFit | None = None
     baseline: CylinderFit | None = None
-    if ground is not None and (in_band.sum() < params.min_band_points or not band_views):
+    if height_ground is not None and (in_band.sum() < params.min_band_points or not band_views):
         flags.append("hidden_at_diameter_height")
-    elif ground is not None:
+    elif height_ground is not None:
         P, N = trunk[in_band], normals[in_band]
         kw = dict(up=axis, threshold_m=params.ransac_threshold_m, iterations=params.ransac_iterations,
                   max_axis_angle_deg=15.0, radius_range_m=radius_range, sigma_3d_m=params.sigma_3d_m,
