@@ -89,6 +89,20 @@ def test_a_trunk_hidden_at_the_diameter_height_is_flagged_not_invented():
     assert lms[0].diameter_m is None and lms[0].band is None
 
 
+def test_without_a_local_ground_the_diameter_height_comes_from_the_wider_ground():
+    """Too little ground seen near the trunk (here: more demanded than the 0.5 m disk can hold, 0.79 m^2): no local ground
+    is reported, yet the diameter is read above the ground of the 1 m disk, and the trunk says so."""
+    points, poses, views = _side()
+    local = GroundParams(min_support_m2=1.0)
+    lms = build_trunk_landmarks(points, poses, views, INTR, TrunkParams(), local, np.random.default_rng(0))
+    assert len(lms) == 1 and lms[0].ground is None
+    assert lms[0].flags == ["no_ground", "diameter_height_from_wide_ground"]
+    assert lms[0].diameter_m == pytest.approx(2 * RADIUS, abs=0.001)
+    off = GroundParams(min_support_m2=1.0, wide_radius_m=0.0)
+    lms = build_trunk_landmarks(points, poses, views, INTR, TrunkParams(), off, np.random.default_rng(0))
+    assert lms[0].flags == ["no_ground"] and lms[0].diameter_m is None
+
+
 def test_no_detection_gives_no_trunk():
     points, poses, views = _side()
     empty = [TrunkView(v.keyframe, v.stamp, v.T_odom_cam, v.depth, []) for v in views]
