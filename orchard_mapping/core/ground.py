@@ -203,7 +203,7 @@ def fit_local_ground(points: np.ndarray, axis: np.ndarray, axis_point: np.ndarra
             best = (score, int(i))
     if best is None:
         return None
-    n, d0, inl = _refine(pts, normals[best[1]], float(offsets[best[1]]), t)
+    n, d0, _ = _refine(pts, normals[best[1]], float(offsets[best[1]]), t)
     envelope = pts[pool]  # (C, 3) one point per cell: area, not point density, weighs the refit
     for _ in range(params.refine_iterations):
         n, d0, _ = _refine(envelope, n, d0, params.refine_band_m)

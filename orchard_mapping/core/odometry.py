@@ -364,18 +364,21 @@ class RGBDFrontEnd:
     def _pnp(self, obj: np.ndarray, img: np.ndarray, guess: np.ndarray | None) -> tuple[np.ndarray | None, np.ndarray]:
         if len(obj) < max(self.p.min_inliers, 6):
             return None, np.zeros(0, int)
+        P, q = obj.astype(np.float64), img.astype(np.float64)  # (N, 3), (N, 2)
         ok, rvec, tvec, inl = cv2.solvePnPRansac(
-            obj.astype(np.float64), img.astype(np.float64), self.Kmat, None,
-            iterationsCount=self.p.pnp_iterations, reprojectionError=self.p.pnp_reprojection_px,
-            confidence=0.999, flags=cv2.SOLVEPNP_AP3P)
+            P, q, self.Kmat, None, iterationsCount=self.p.pnp_iterations,
+            reprojectionError=self.p.pnp_reprojection_px, confidence=0.999, flags=cv2.SOLVEPNP_AP3P)
         if not ok or inl is None or len(inl) < self.p.min_inliers:
             return None, np.zeros(0, int)
-        inl = inl.ravel()
-        rvec, tvec = cv2.solvePnPRefineLM(obj[inl].astype(np.float64), img[inl].astype(np.float64), self.Kmat, None,
-                                          rvec, tvec)
+
+        def refine_and_score(subset: np.ndarray, rvec: np.ndarray, tvec: np.ndarray):
+            """LM on the matches `subset`, then every match's reprojection error (N,) px with that pose."""
+            rvec, tvec = cv2.solvePnPRefineLM(P[subset], q[subset], self.Kmat, None, rvec, tvec)
+            proj, _ = cv2.projectPoints(P, rvec, tvec, self.Kmat, None)
+            return rvec, tvec, np.linalg.norm(proj.reshape(-1, 2) - q, axis=1)
+
         # Re-score all matches with the refined pose (RANSAC's minimal-sample inlier set is noisy).
-        proj, _ = cv2.projectPoints(obj.astype(np.float64), rvec, tvec, self.Kmat, None)
-        err = np.linalg.norm(proj.reshape(-1, 2) - img, axis=1)
+        rvec, tvec, err = refine_and_score(inl.ravel(), rvec, tvec)
         inl = np.flatnonzero(err < self.p.pnp_reprojection_px)
         if len(inl) < self.p.min_inliers:
             return None, np.zeros(0, int)
@@ -384,10 +387,7 @@ class RGBDFrontEnd:
             gate = min(self.p.pnp_reprojection_px, max(self.p.pnp_min_reprojection_px, self.p.pnp_gate_sigmas * sigma))
             tight = np.flatnonzero(err < gate)
             if gate < self.p.pnp_reprojection_px and len(tight) >= self.p.min_inliers:
-                rvec, tvec = cv2.solvePnPRefineLM(obj[tight].astype(np.float64), img[tight].astype(np.float64),
-                                                  self.Kmat, None, rvec, tvec)
-                proj, _ = cv2.projectPoints(obj.astype(np.float64), rvec, tvec, self.Kmat, None)
-                err = np.linalg.norm(proj.reshape(-1, 2) - img, axis=1)
+                rvec, tvec, err = refine_and_score(tight, rvec, tvec)
                 inl = np.flatnonzero(err < gate)
                 if len(inl) < self.p.min_inliers:
                     inl = tight

@@ -156,6 +156,9 @@ def side_up_direction(poses: np.ndarray) -> np.ndarray:
     return up / n
 
 
+TRUNK_SURFACE_M = 0.02  # m, points this close to a trunk's coarse cylinder are its surface, not ground
+
+
 def _backproject(depth: np.ndarray, mask: np.ndarray, intr: CameraIntrinsics, T_odom_cam: np.ndarray) -> np.ndarray:
     """(M, 3) odom points of the mask's pixels with depth (row-major pixel order)."""
     v, u = np.nonzero(mask & (depth > 0))
@@ -246,8 +249,18 @@ def _band_rows_mask(det_mask: np.ndarray, depth: np.ndarray, intr: CameraIntrins
     return out
 
 
-def _wide_ground(points: np.ndarray, o_bottom: np.ndarray, axis: np.ndarray, trunk: Cylinder,
-                 ground_params: GroundParams, rng: np.random.Generator) -> LocalGroundFit | None:
+def _ground_around(points: np.ndarray, o_bottom: np.ndarray, trunk: Cylinder, ground_params: GroundParams,
+                   rng: np.random.Generator) -> LocalGroundFit | None:
+    """The ground plane within ground_params.radius_m of the trunk axis (trunk prior, core.ground) from
+    points (P, 3) odom; o_bottom (3,) the axis at the trunk's lowest point. The trunk's own surface
+    (within TRUNK_SURFACE_M of the cylinder) is never ground."""
+    cand = ground_neighbourhood(points, o_bottom, trunk.axis, ground_params, trunk_bottom_height=0.0)
+    cand = cand[point_distance(points[cand], trunk) > TRUNK_SURFACE_M]
+    return fit_local_ground(points[cand], trunk.axis, o_bottom, ground_params, rng)
+
+
+def _wide_ground(points: np.ndarray, o_bottom: np.ndarray, trunk: Cylinder, ground_params: GroundParams,
+                 rng: np.random.Generator) -> LocalGroundFit | None:
     """The ground over a disk of ground.wide_radius_m around the trunk (None if off or not found).
 
     Where weeds or leaves hide the local ground the diameter is still wanted, and its height needs only
@@ -255,10 +268,7 @@ def _wide_ground(points: np.ndarray, o_bottom: np.ndarray, axis: np.ndarray, tru
     ground (the terrain within 0.5 m) and is not reported as one."""
     if ground_params.wide_radius_m <= ground_params.radius_m:
         return None
-    wide = replace(ground_params, radius_m=ground_params.wide_radius_m)
-    cand = ground_neighbourhood(points, o_bottom, axis, wide, trunk_bottom_height=0.0)
-    cand = cand[point_distance(points[cand], trunk) > 0.02]
-    return fit_local_ground(points[cand], axis, o_bottom, wide, rng)
+    return _ground_around(points, o_bottom, trunk, replace(ground_params, radius_m=ground_params.wide_radius_m), rng)
 
 
 def build_trunk_landmarks(points: np.ndarray, poses: np.ndarray, views: list[TrunkView], intr: CameraIntrinsics,
@@ -338,16 +348,13 @@ def _model_trunk(lm_id: int, obs: list[tuple[TrunkView, Detection]], places: np.
     origin = coarse.cylinder.origin
     # 4. local ground with the trunk axis prior; the trunk's own surface is never ground
     o_bottom = origin + (h_bottom - origin @ axis) * axis
-    off_trunk = point_distance(local, coarse.cylinder) > 0.02
-    cand = ground_neighbourhood(local, o_bottom, axis, ground_params, trunk_bottom_height=0.0)
-    cand = cand[off_trunk[cand]]
-    ground = fit_local_ground(local[cand], axis, o_bottom, ground_params, rng)
+    ground = _ground_around(local, o_bottom, coarse.cylinder, ground_params, rng)
     h_lo, h_hi = params.diameter_height_m - params.band_m / 2, params.diameter_height_m + params.band_m / 2
     height_ground = ground  # the plane the diameter height is measured from
     base = o_bottom if ground is None else ground.point
     if ground is None:
         flags.append("no_ground")
-        height_ground = _wide_ground(points, o_bottom, axis, coarse.cylinder, ground_params, rng)
+        height_ground = _wide_ground(points, o_bottom, coarse.cylinder, ground_params, rng)
         if height_ground is not None:
             flags.append("diameter_height_from_wide_ground")
     # Without any ground the diameter height is unknown: no diameter rather than one at a guessed height.
