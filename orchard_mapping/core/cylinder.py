@@ -17,7 +17,9 @@ point on the axis) and radius r_d. It is fitted in two steps:
    ray, so the 2D term pins the radius to the edges the detector sees. A third
    term (the "boundary" of the issue: the mask's left and right edges) asks the
    viewing ray through each edge pixel to touch the cylinder; edges made by an
-   occluder in front of the trunk (an occlusion boundary) are left out.
+   occluder in front of the trunk (an occlusion boundary) are left out. A learned
+   mask's edges stray a few pixels from the trunk's; each edge is first moved
+   to the trunk's depth discontinuity within `edge_snap_px` (exact masks stay put).
    With `use_2d=False` only the 3D term remains: the paper's baseline, which
    gives trunks too large (noise on the visible half-surface pulls the radius out).
 
@@ -170,7 +172,8 @@ class _ViewData:
     edge_depth: np.ndarray  # (B,) m: trunk depth beside each edge pixel (px -> m scale)
 
 
-def _prepare_view(view: CylinderView, intr: CameraIntrinsics, rng: np.random.Generator, max_pixels: int) -> _ViewData:
+def _prepare_view(view: CylinderView, intr: CameraIntrinsics, rng: np.random.Generator, max_pixels: int,
+                  snap_px: int = 0) -> _ViewData:
     mask = np.asarray(view.mask, bool)
     depth = np.asarray(view.depth, np.float32)
     if mask.shape != depth.shape or mask.shape != (intr.height, intr.width):
@@ -182,7 +185,7 @@ def _prepare_view(view: CylinderView, intr: CameraIntrinsics, rng: np.random.Gen
         keep = np.sort(rng.choice(len(u), max_pixels, replace=False))
         u, v = u[keep], v[keep]
     uv = np.stack([u, v], 1).astype(float)
-    rays, edge_z = _silhouette_rays(mask, depth, intr)
+    rays, edge_z = _silhouette_rays(mask, depth, intr, snap_px=snap_px)
     return _ViewData(T_cam_odom, backproject(uv, depth[v, u].astype(float), intr), uv, rays, edge_z)
 
 
@@ -191,8 +194,32 @@ def _view_terms(cyl: Cylinder, d: _ViewData, intr: CameraIntrinsics) -> tuple[np
     return view_residuals(cyl.transformed(d.T_cam_odom), d.X, d.uv, d.rays, d.edge_depth, intr)
 
 
+def _snap_edge(row: np.ndarray, u_in: int, step: int, snap_px: int, z_core: float, jump_m: float,
+               behind_m: float) -> int:
+    """The last trunk pixel of a row at a mask edge, moved to the depth discontinuity within snap_px.
+
+    Outward while the depth continues smoothly from the trunk (the mask stopped short of the trunk's
+    edge); else inward past pixels far behind the trunk (the mask bled onto the background). Missing
+    depth stops the walk outward and is not taken for background: sensors drop pixels at depth edges.
+    jump_m: across a trunk (radius 2-8 cm, 0.8-3 m away) depth changes by under 1 cm per pixel up
+    to its last pixel, and what lies behind a trunk at breast height is 10 cm or more farther.
+    behind_m: a pixel this far behind the trunk's median depth on its row is not on the trunk.
+    """
+    W = len(row)
+    u = u_in
+    while abs(u + step - u_in) <= snap_px and 0 <= u + step < W and row[u + step] > 0 and row[u] > 0 \
+            and abs(row[u + step] - row[u]) < jump_m and row[u + step] < z_core + behind_m:
+        u += step
+    if u != u_in:
+        return u
+    while abs(u - step - u_in) <= snap_px and row[u] > z_core + behind_m and 0 <= u - step < W:
+        u -= step
+    return u
+
+
 def _silhouette_rays(mask: np.ndarray, depth: np.ndarray, intr: CameraIntrinsics, *, look_px: int = 8,
-                     occluder_margin_m: float = 0.05) -> tuple[np.ndarray, np.ndarray]:
+                     occluder_margin_m: float = 0.05, snap_px: int = 0, jump_m: float = 0.03,
+                     behind_m: float = 0.20) -> tuple[np.ndarray, np.ndarray]:
     """Viewing rays through the left and right edges of the mask, one per row and side.
 
     An edge is kept only where it is the trunk's own silhouette: not at the image border, the trunk
@@ -204,7 +231,15 @@ def _silhouette_rays(mask: np.ndarray, depth: np.ndarray, intr: CameraIntrinsics
     rays, zs = [], []
     for v in rows:
         cols = np.flatnonzero(mask[v])
+        if snap_px:
+            zc = depth[v, cols]
+            zc = zc[zc > 0]
+            if len(zc) == 0:
+                continue
+            z_core = float(np.median(zc))
         for u_in, step in ((cols[0], -1), (cols[-1], 1)):
+            if snap_px:
+                u_in = _snap_edge(depth[v], int(u_in), step, snap_px, z_core, jump_m, behind_m)
             if u_in + step < 0 or u_in + step >= W:
                 continue
             inside = depth[v, max(0, min(u_in, u_in - 3 * step)):max(u_in, u_in - 3 * step) + 1]
@@ -263,7 +298,8 @@ def fit_cylinder(points: np.ndarray, normals: np.ndarray, views: list[CylinderVi
                  iterations: int = 200, max_axis_angle_deg: float = 30.0,
                  radius_range_m: tuple[float, float] = (0.01, 0.25), use_2d: bool = True,
                  sigma_3d_m: float = 0.003, sigma_px: float = 1.0, lam: float = 1.0, huber_k: float = 1.345,
-                 max_pixels_per_view: int = 400, initial: Cylinder | None = None) -> CylinderFit:
+                 max_pixels_per_view: int = 400, initial: Cylinder | None = None,
+                 edge_snap_px: int = 0) -> CylinderFit:
     """RANSAC (two oriented points) then LM with Huber loss on eq. objectCylinder.
 
     points, normals (N, 3) in odom: the trunk segment's fused points; views: the frames that detected
@@ -283,7 +319,7 @@ def fit_cylinder(points: np.ndarray, normals: np.ndarray, views: list[CylinderVi
         cyl0 = initial
         inl = np.abs(point_distance(points, cyl0)) < threshold_m
     P = points[inl]  # (N_in, 3) 3D term: the RANSAC inliers
-    data = [_prepare_view(v, intr, rng, max_pixels_per_view) for v in views] if use_2d else []
+    data = [_prepare_view(v, intr, rng, max_pixels_per_view, edge_snap_px) for v in views] if use_2d else []
     e1, e2 = _basis(cyl0.axis)
     w2 = np.sqrt(lam) / sigma_px
 

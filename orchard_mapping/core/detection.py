@@ -89,7 +89,7 @@ class OnnxTrunkDetector:
     """
 
     def __init__(self, path: str | Path, *, score_threshold: float = 0.5, mask_threshold: float = 0.5,
-                 input_size: tuple[int, int] | None = None, threads: int = 2) -> None:
+                 input_size: tuple[int, int] | None = None, threads: int = 2, max_overlap: float = 0.5) -> None:
         self.path = resolve_model_path(path)
         if not self.path.is_file():
             raise DetectorError(f"trunk detector model {self.path}: no such file")
@@ -132,12 +132,14 @@ class OnnxTrunkDetector:
                                     f"got shape {outs[n].shape}")
         self.score_threshold = float(score_threshold)
         self.mask_threshold = float(mask_threshold)
+        self.max_overlap = float(max_overlap)
 
     @staticmethod
     def from_params(p: Any) -> "OnnxTrunkDetector":
         """From the config section `trunks` (core.trunks.TrunkParams)."""
         return OnnxTrunkDetector(p.model, score_threshold=p.score_threshold, mask_threshold=p.mask_threshold,
-                                 input_size=(p.input_width, p.input_height), threads=p.threads)
+                                 input_size=(p.input_width, p.input_height), threads=p.threads,
+                                 max_overlap=p.max_mask_overlap)
 
     def detect(self, color: np.ndarray, where: str = "frame") -> list[Detection]:
         """Detections in one colour image (H, W, 3) uint8 RGB; `where` names the frame in errors."""
@@ -163,7 +165,14 @@ class OnnxTrunkDetector:
         out = []
         sx, sy = W / w, H / h
         full = masks.ndim == 4 and masks.shape[-2:] == (h, w)  # else box-relative (N, 1, M, M)
-        for i in np.flatnonzero(scores >= self.score_threshold):
+        # Box NMS keeps a second detection of part of a trunk (its box overlaps the whole trunk's by
+        # less than half); such a mask lies mostly inside a better-scored one. As panoptic merging
+        # does, a mask whose pixels are more than max_overlap taken by higher-scored ones is dropped.
+        # Measured on the 10-tree standard row: 246 such pairs in 147 frames; kept, they made every
+        # other view of a trunk 7 px narrower and the diameters 5 mm too small.
+        taken = np.zeros((H, W), bool)
+        keep = np.flatnonzero(scores >= self.score_threshold)
+        for i in keep[np.argsort(-scores[keep], kind="stable")]:
             b = boxes[i] * np.array([sx, sy, sx, sy])
             prob = masks[i, 0] if masks.ndim == 4 else masks[i]
             if full:
@@ -172,7 +181,9 @@ class OnnxTrunkDetector:
                 m = prob >= self.mask_threshold
             else:
                 m = _paste(prob.astype(np.float32), b, H, W) >= self.mask_threshold
-            if not m.any():
+            area = int(m.sum())
+            if not area or (m & taken).sum() > self.max_overlap * area:
                 continue
+            taken |= m
             out.append(Detection(int(labels[i]), float(scores[i]), b.astype(float), m))
         return out

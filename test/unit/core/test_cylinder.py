@@ -126,3 +126,26 @@ def test_an_occluded_edge_is_not_taken_for_the_trunk_silhouette():
         views.append(CylinderView(T, mask, depth))
     fit = fit_cylinder(P, N, views, INTR, np.random.default_rng(0), up=UP, use_2d=True)
     assert abs(fit.cylinder.radius - cyl.radius) < 0.0008
+
+
+@pytest.mark.parametrize("seed", [0, 1])
+@pytest.mark.parametrize("grow_px", [-3, 3])
+def test_mask_edges_that_stray_from_the_trunk_are_moved_to_its_depth_edge(seed, grow_px):
+    """A learned mask 3 px short of (or past) the trunk's edges on every row pulls the 2D fit's radius
+    in (out) by several millimetres; moving each edge to the depth discontinuity within reach restores it."""
+    import cv2
+
+    rng = np.random.default_rng(seed)
+    cyl = _true_cylinder()
+    P, N = surface_points(cyl, rng)
+    kernel = np.ones((1, 2 * abs(grow_px) + 1), np.uint8)  # horizontal: rows keep their extent
+    views = []
+    for v in _views(cyl, rng):
+        m = v.mask.astype(np.uint8)
+        m = cv2.dilate(m, kernel) if grow_px > 0 else cv2.erode(m, kernel)
+        views.append(CylinderView(v.T_odom_cam, m.astype(bool), v.depth))
+    raw = fit_cylinder(P, N, views, INTR, np.random.default_rng(seed), up=UP, use_2d=True)
+    snapped = fit_cylinder(P, N, views, INTR, np.random.default_rng(seed), up=UP, use_2d=True, edge_snap_px=6)
+    assert np.sign(raw.cylinder.radius - cyl.radius) == np.sign(grow_px)
+    assert abs(raw.cylinder.radius - cyl.radius) > 0.0015
+    assert abs(snapped.cylinder.radius - cyl.radius) < 0.0008

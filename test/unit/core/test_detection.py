@@ -28,8 +28,9 @@ def _masks() -> np.ndarray:
 
 
 def _model(path: Path, *, outputs: tuple[str, ...] = ("boxes", "labels", "scores", "masks"),
-           input_shape: list = [3, H, W], input_type: int = TensorProto.FLOAT, box_masks: bool = False) -> Path:
-    values = {
+           input_shape: list = [3, H, W], input_type: int = TensorProto.FLOAT, box_masks: bool = False,
+           values: dict[str, np.ndarray] | None = None) -> Path:
+    values = values or {
         "boxes": np.array([[20, 10, 30, 40], [50, 5, 56, 45], [0, 0, 10, 10]], np.float32),
         "labels": np.array([CLASS_TRUNK, CLASS_POST, CLASS_TRUNK], np.int64),
         "scores": np.array([0.95, 0.7, 0.2], np.float32),
@@ -61,6 +62,24 @@ def test_detections_are_thresholded_and_mapped_back_to_the_frame(tmp_path):
     assert (v.min(), v.max(), u.min(), u.max()) == (20, 79, 40, 59)
     assert out[1].score == pytest.approx(0.7)
     assert len(OnnxTrunkDetector(tmp_path / "m.onnx", score_threshold=0.75).detect(frame)) == 1
+
+
+def test_a_second_detection_of_part_of_a_trunk_is_dropped(tmp_path):
+    """Box NMS lets through a half-trunk beside the whole one (box IoU 0.5); its mask lies inside the
+    better-scored trunk's and is dropped. A post touching the trunk keeps its own mask."""
+    m = np.zeros((3, 1, H, W), np.float32)
+    m[0, 0, 10:40, 20:30] = 0.9  # the trunk
+    m[1, 0, 10:40, 20:25] = 0.9  # its left half, detected again with a lower score
+    m[2, 0, 10:40, 29:35] = 0.9  # a post overlapping the trunk's edge column
+    values = {"boxes": np.array([[20, 10, 30, 40], [20, 10, 25, 40], [29, 10, 35, 40]], np.float32),
+              "labels": np.array([CLASS_TRUNK, CLASS_TRUNK, CLASS_POST], np.int64),
+              "scores": np.array([0.9, 0.7, 0.8], np.float32),
+              "masks": m}
+    frame = np.zeros((H, W, 3), np.uint8)
+    out = OnnxTrunkDetector(_model(tmp_path / "m.onnx", values=values)).detect(frame)
+    assert [(d.class_id, int(d.mask.sum())) for d in out] == [(CLASS_TRUNK, 300), (CLASS_POST, 180)]
+    kept = OnnxTrunkDetector(tmp_path / "m.onnx", max_overlap=1.0).detect(frame)  # suppression off
+    assert sorted(d.score for d in kept) == pytest.approx([0.7, 0.8, 0.9])
 
 
 def test_box_relative_masks_are_pasted_into_their_boxes(tmp_path):
