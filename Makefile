@@ -53,9 +53,8 @@ demo: setup
 	$(VENV)/bin/orchard-map simulate --scenario standard --trees 3 --seed 0 --set camera.rate_hz=10 --out demo_out/sim --force
 	$(VENV)/bin/orchard-map inspect demo_out/sim
 	rm -rf demo_out/result
-	@echo "Trunk masks: the simulator's own instance masks (trunks.source=masks); no trained detector ships yet (docs/detector.md)."
-	$(VENV)/bin/orchard-map run demo_out/sim/front demo_out/sim/back --out demo_out/result \
-	    --set trunks.source=masks --set trunks.masks_dir=demo_out/sim/masks
+	@echo "Trunks: found by the shipped detector (models/trunk_maskrcnn.onnx, trunks.source=model)."
+	$(VENV)/bin/orchard-map run demo_out/sim/front demo_out/sim/back --out demo_out/result
 	$(VENV)/bin/orchard-map evaluate --truth demo_out/sim/ground_truth.json --result demo_out/result
 
 # The training-only extra (torch, torchvision) for `orchard-map train-detector`; never part of `make setup`.

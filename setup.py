@@ -16,6 +16,8 @@ setup(
         ("share/" + package_name + "/config", glob("config/*.yaml")),
         ("share/" + package_name + "/config/scenarios", glob("config/scenarios/*.yaml")),
         ("share/" + package_name + "/launch", glob("launch/*.py")),
+        # the shipped trunk detector and its card: trunks.model resolves here in an installed package
+        ("share/" + package_name + "/models", glob("models/*.onnx") + glob("models/*.json") + ["models/README.md"]),
     ],
     python_requires=">=3.10",
     install_requires=["numpy", "scipy", "pyyaml", "pydantic>=2", "typer", "rich", "rosbags", "opencv-python-headless"],

@@ -62,7 +62,7 @@ class TrunkParams:
     # Where trunk masks come from: "model" (the ONNX detector at `model`), "masks" (instance masks on disk
     # under `masks_dir`/<side>/: the simulator's, or a user's annotations; measures the geometry alone),
     # or "off" (no trunks, no local grounds).
-    source: str = "off"
+    source: str = "model"
     model: str = "models/trunk_maskrcnn.onnx"  # relative paths: to the working directory, then the package
     masks_dir: str = ""
     score_threshold: float = 0.5  # detections scored lower are dropped

@@ -61,6 +61,15 @@ def reconstructed(tmp_path_factory, seed_offset) -> tuple[Path, Path]:
 
 
 @pytest.fixture(scope="module")
+def reconstructed_model(reconstructed, tmp_path_factory) -> tuple[Path, Path]:
+    """The same row through `run` with the default configuration: trunks from the shipped detector."""
+    sim, _ = reconstructed
+    out = tmp_path_factory.mktemp("standard_model") / "result"
+    run(sim / "front", sim / "back", out, load_config())
+    return sim, out
+
+
+@pytest.fixture(scope="module")
 def wind_front(tmp_path_factory, seed_offset) -> tuple[Path, SideMap]:
     """The front side of the wind row (leaves and fruit move) through `reconstruct_side` only (cheaper)."""
     root = tmp_path_factory.mktemp("wind")
@@ -245,6 +254,20 @@ def test_result_folder_parts(reconstructed):
     assert {g["trunk_id"] for g in grounds["front"]["grounds"]} <= {t["id"] for t in trunks["front"]["trunks"]}
     assert (out / "front.ply").stat().st_size > 100_000 and (out / "back.ply").is_file()
     assert not list(out.glob(".staging-*"))
+
+
+def test_the_shipped_detector_finds_each_trunk_and_measures_it(reconstructed_model, accuracy):
+    """The product's default path: trunk masks from models/trunk_maskrcnn.onnx. Every trunk in view found,
+    nothing else taken for a trunk (the row has trellis posts), diameters within the MAE goal (4 mm).
+    The bias goal needs more than two trees: benchmarks/trunks.py --source model measures it on ten."""
+    sim, out = reconstructed_model
+    assert load_config(out / "config.effective.yaml").trunks.source == "model"
+    report = evaluate_result(sim / "ground_truth.json", out).to_dict()
+    for side in ("front", "back"):
+        t = report["trunks"][side]
+        assert t["matched"] == t["true_in_view"] == 2 and t["reported"] == 2, t
+        assert t["diameter_n"] >= 2, t
+        accuracy.at_most(f"{side} trunk diameter MAE (shipped detector), mm", t["diameter_mae_mm"], 4.0)
 
 
 def test_trunk_diameters_of_each_side_within_goals(reconstructed, accuracy):

@@ -1,0 +1,167 @@
+"""Initial transform between the two sides from paired trunks and local grounds (paper: "Merging
+Two-Sides 3D Reconstruction", "Initial Transformation").
+
+Each trunk seen from both sides gives its axis n_d and a point O_d on it in both frames; each tree's
+local ground gives its normal n_p and a point O_p. The rigid transform [R | t] odom_front <- odom_back
+must satisfy, for every pair (the paper's constraints 1-3):
+
+  1. R n_d^B = n_d^F and R n_p^B = n_p^F (axes and normals agree);
+  2. n_d^F x (R O_d^B + t - O_d^F) = 0 (the back origin lies on the front axis);
+  3. n_p^F . (R O_p^B + t - O_p^F) = 0 (the back origin lies on the front plane).
+
+They are linear in the 12 entries of [R | t]: stacked into A x = b and solved by least squares, R is
+replaced by the nearest rotation (SVD, Frobenius norm), then the same residuals are minimised with a
+Huber loss over a rotation vector (Rodrigues) and t by Levenberg-Marquardt. Residuals are scaled by
+their sigmas, so one pair on a weed ramp or a leaning post is down-weighted and reported.
+
+Frames: each side's odom frame; metres, unit vectors.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+from scipy.optimize import least_squares
+from scipy.spatial.transform import Rotation
+
+from orchard_mapping.core.geometry import make_transform
+from orchard_mapping.errors import AlignmentError
+
+__all__ = ["MergeParams", "PairResidual", "SemanticPair", "InitialTransform", "initial_transform"]
+
+
+@dataclass
+class MergeParams:
+    """Settings of the initial transform (config section `merge`)."""
+
+    __pydantic_config__ = {"extra": "forbid"}
+
+    # Sigmas of the constraint residuals: a trunk's whole-length axis is good to ~0.5 deg and its line
+    # to a few millimetres; a local ground's normal to ~1 deg and its height to ~1 cm (benchmarks/trunks.py).
+    sigma_axis_rad: float = 0.01
+    sigma_line_m: float = 0.005
+    sigma_normal_rad: float = 0.02
+    sigma_plane_m: float = 0.01
+    huber_k: float = 1.345  # in sigmas
+
+
+@dataclass(frozen=True)
+class SemanticPair:
+    """One tree seen from both sides: its trunk axis and (when fitted on both) its local ground."""
+
+    front_id: int
+    back_id: int
+    axis_f: np.ndarray  # (3,) unit, odom_front
+    origin_f: np.ndarray  # (3,) m, a point on the front axis
+    axis_b: np.ndarray  # (3,) unit, odom_back
+    origin_b: np.ndarray  # (3,) m
+    ground_f: tuple[np.ndarray, np.ndarray] | None = None  # (normal (3,), point (3,)) odom_front
+    ground_b: tuple[np.ndarray, np.ndarray] | None = None
+
+
+@dataclass(frozen=True)
+class PairResidual:
+    front_id: int
+    back_id: int
+    axis_deg: float  # angle between the axes after the transform
+    line_mm: float  # distance of the back origin from the front axis
+    ground_deg: float | None  # angle between the ground normals
+    ground_mm: float | None  # distance of the back ground point from the front plane
+
+
+@dataclass(frozen=True)
+class InitialTransform:
+    T_front_back: np.ndarray  # (4, 4) rigid odom_front <- odom_back
+    residuals: tuple[PairResidual, ...]
+    linear_T: np.ndarray  # (4, 4) the least-squares solution with its nearest rotation (before LM)
+    cost_initial: float  # Huber cost at the linear solution
+    cost_final: float
+
+
+def _skew(v: np.ndarray) -> np.ndarray:
+    return np.array([[0.0, -v[2], v[1]], [v[2], 0.0, -v[0]], [-v[1], v[0], 0.0]])
+
+
+def _linear_system(pairs: list[SemanticPair]) -> tuple[np.ndarray, np.ndarray]:
+    """A (rows, 12), b (rows,) of constraints 1-3 with x = [r1; r2; r3; t] (R's columns, then t)."""
+    rows, rhs = [], []
+
+    def rotate_rows(v_b: np.ndarray, v_f: np.ndarray) -> None:  # R v_b = v_f
+        for k in range(3):
+            a = np.zeros(12)
+            a[[k, 3 + k, 6 + k]] = v_b
+            rows.append(a)
+            rhs.append(v_f[k])
+
+    for p in pairs:
+        rotate_rows(p.axis_b, p.axis_f)
+        if p.ground_f is not None and p.ground_b is not None:
+            rotate_rows(p.ground_b[0], p.ground_f[0])
+    for p in pairs:  # n_f x (R O_b + t) = n_f x O_f
+        K = _skew(p.axis_f)
+        a = np.hstack([p.origin_b[0] * K, p.origin_b[1] * K, p.origin_b[2] * K, K])  # (3, 12)
+        rows.extend(a)
+        rhs.extend(np.cross(p.axis_f, p.origin_f))
+    for p in pairs:  # n_f . (R O_b + t) = n_f . O_f
+        if p.ground_f is None or p.ground_b is None:
+            continue
+        n, o_b = p.ground_f[0], p.ground_b[1]
+        rows.append(np.concatenate([o_b[0] * n, o_b[1] * n, o_b[2] * n, n]))
+        rhs.append(float(n @ p.ground_f[1]))
+    return np.asarray(rows), np.asarray(rhs)
+
+
+def _residuals(R: np.ndarray, t: np.ndarray, pairs: list[SemanticPair], mp: MergeParams) -> np.ndarray:
+    """Sigma-scaled residuals of constraints 1-3, pair by pair: 3 + 3 (+ 3 + 1 with grounds) each."""
+    out = []
+    for p in pairs:
+        out.append((R @ p.axis_b - p.axis_f) / mp.sigma_axis_rad)
+        out.append(np.cross(p.axis_f, R @ p.origin_b + t - p.origin_f) / mp.sigma_line_m)
+        if p.ground_f is not None and p.ground_b is not None:
+            out.append((R @ p.ground_b[0] - p.ground_f[0]) / mp.sigma_normal_rad)
+            out.append(np.atleast_1d(p.ground_f[0] @ (R @ p.ground_b[1] + t - p.ground_f[1])) / mp.sigma_plane_m)
+    return np.concatenate(out)
+
+
+def _huber_cost(r: np.ndarray, k: float) -> float:
+    a = np.abs(r)
+    return float(np.sum(np.where(a <= k, 0.5 * a**2, k * (a - 0.5 * k))))
+
+
+def initial_transform(pairs: list[SemanticPair], params: MergeParams) -> InitialTransform:
+    """Rigid odom_front <- odom_back from paired trunk axes and local grounds (module docstring)."""
+    if len(pairs) < 2:
+        raise AlignmentError(f"the initial transform needs at least two trunks seen from both sides, "
+                             f"got {len(pairs)}")
+    if not any(p.ground_f is not None and p.ground_b is not None for p in pairs):
+        raise AlignmentError("the initial transform needs at least one tree with a local ground on both sides")
+    A, b = _linear_system(pairs)
+    x, *_ = np.linalg.lstsq(A, b, rcond=None)
+    M = x[:9].reshape(3, 3).T  # columns r1 r2 r3
+    U, _, Vt = np.linalg.svd(M)
+    R0 = U @ np.diag([1.0, 1.0, np.linalg.det(U @ Vt)]) @ Vt
+    t0 = x[9:]
+    # With R fixed at its nearest rotation, t again by least squares on the translation columns.
+    resid_b = b - A[:, :9] @ R0.T.reshape(-1)
+    t0, *_ = np.linalg.lstsq(A[:, 9:], resid_b, rcond=None)
+    cost0 = _huber_cost(_residuals(R0, t0, pairs, params), params.huber_k)
+
+    def fun(z: np.ndarray) -> np.ndarray:
+        return _residuals(Rotation.from_rotvec(z[:3]).as_matrix() @ R0, z[3:], pairs, params)
+
+    sol = least_squares(fun, np.concatenate([np.zeros(3), t0]), loss="huber", f_scale=params.huber_k,
+                        method="trf", x_scale=[0.01, 0.01, 0.01, 0.01, 0.01, 0.01])
+    R = Rotation.from_rotvec(sol.x[:3]).as_matrix() @ R0
+    t = sol.x[3:]
+    res = []
+    for p in pairs:
+        a = float(np.degrees(np.arccos(np.clip((R @ p.axis_b) @ p.axis_f, -1.0, 1.0))))
+        line = float(np.linalg.norm(np.cross(p.axis_f, R @ p.origin_b + t - p.origin_f)))
+        gd = gm = None
+        if p.ground_f is not None and p.ground_b is not None:
+            gd = float(np.degrees(np.arccos(np.clip((R @ p.ground_b[0]) @ p.ground_f[0], -1.0, 1.0))))
+            gm = float(1000 * abs(p.ground_f[0] @ (R @ p.ground_b[1] + t - p.ground_f[1])))
+        res.append(PairResidual(p.front_id, p.back_id, a, 1000 * line, gd, gm))
+    return InitialTransform(make_transform(R, t), tuple(res), make_transform(R0, t0), cost0,
+                            _huber_cost(_residuals(R, t, pairs, params), params.huber_k))
