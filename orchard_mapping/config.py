@@ -13,10 +13,12 @@ from typing import Any, Literal
 import yaml
 from pydantic import BaseModel, ConfigDict, Field, ValidationError
 
+from orchard_mapping.core.alignment import AlignmentParams
 from orchard_mapping.core.bundle_adjustment import BundleAdjustmentParams
 from orchard_mapping.core.fusion import FusionParams
 from orchard_mapping.core.ground import GroundParams
 from orchard_mapping.core.loop_closure import LoopParams
+from orchard_mapping.core.merge import MergeParams
 from orchard_mapping.core.odometry import FrontEndParams
 from orchard_mapping.core.trunks import TrunkParams
 from orchard_mapping.errors import ConfigError
@@ -72,6 +74,8 @@ class OrchardConfig(_Section):
     fusion: FusionParams = FusionParams()
     trunks: TrunkParams = TrunkParams()
     ground: GroundParams = GroundParams()
+    alignment: AlignmentParams = AlignmentParams()
+    merge: MergeParams = MergeParams()
     evaluate: EvaluateConfig = EvaluateConfig()
     seed: int = 0
 

@@ -21,17 +21,19 @@ from pathlib import Path
 import numpy as np
 
 from orchard_mapping.config import OrchardConfig, dump_yaml
+from orchard_mapping.core.alignment import AlignmentSide, SideAlignment, align_sides
 from orchard_mapping.core.bundle_adjustment import BAResult, bundle_adjust, optimise_pose_graph
 from orchard_mapping.core.fusion import FusionResult, fuse_side
+from orchard_mapping.core.merge import InitialTransform, SemanticPair, initial_transform
 from orchard_mapping.core.geometry import matrix_to_quat
 from orchard_mapping.core.odometry import RGBDFrontEnd
 from orchard_mapping.core.sidemap import FrontEndResult, LoopClosure, SideMap
 from orchard_mapping.core.trunks import TrunkLandmark, TrunkView, build_trunk_landmarks
 from orchard_mapping.core.types import RGBDFrame, StampedTrajectory
-from orchard_mapping.errors import BagFormatError
+from orchard_mapping.errors import AlignmentError, BagFormatError
 from orchard_mapping.io.bags import RGBDSequence, read_rgbd
 from orchard_mapping.io.landmarks import GROUNDS_JSON, TRUNKS_JSON, write_grounds, write_trunks
-from orchard_mapping.io.results import atomic_write_text, write_timings, write_tum
+from orchard_mapping.io.results import atomic_write_text, write_side_merge, write_timings, write_tum
 
 log = logging.getLogger(__name__)
 
@@ -230,6 +232,44 @@ def write_landmarks(out: Path, sides: dict[str, SideMap], cfg: OrchardConfig) ->
     write_grounds(out / GROUNDS_JSON, by_side)
 
 
+def merge_sides(front: SideMap, back: SideMap, cfg: OrchardConfig) -> tuple[SideAlignment, InitialTransform]:
+    """Initial alignment (global features) then the initial transform (paired trunks and grounds)."""
+    def side_input(sm: SideMap) -> AlignmentSide:
+        t = sm.trunks
+        return AlignmentSide(sm.cloud_points, sm.keyframe_poses, np.array([x.base for x in t]).reshape(-1, 3),
+                             np.array([x.axis for x in t]).reshape(-1, 3), np.array([x.id for x in t], int),
+                             sm.scale_free)
+
+    rng = np.random.default_rng(cfg.seed)
+    al = align_sides(side_input(front), side_input(back), cfg.alignment, rng)
+    by_f = {t.id: t for t in front.trunks}
+    by_b = {t.id: t for t in back.trunks}
+    pairs = []
+    for i, j in al.pairs:
+        f, b = by_f[i], by_b[j]
+        both = f.ground is not None and b.ground is not None
+        pairs.append(SemanticPair(i, j, f.axis, f.base, b.axis, b.base,
+                                  (f.ground.normal, f.ground.point) if both else None,
+                                  (b.ground.normal, b.ground.point) if both else None))
+    return al, initial_transform(pairs, cfg.merge)
+
+
+def write_merge(out: Path, al: SideAlignment, it: InitialTransform, sides: dict[str, SideMap]) -> None:
+    """side_merge.json and the back trajectory in map (= odom_front)."""
+    write_side_merge(
+        out / "side_merge.json", it.T_front_back, method="initial",
+        residuals={"pairs": [asdict(r) for r in it.residuals], "huber_cost_initial": it.cost_initial,
+                   "huber_cost_final": it.cost_final, "boundary_rms_m": al.boundary_rms_m},
+        overlap={"x_range_m": list(al.overlap_m), "trunks_front": len(sides["front"].trunks),
+                 "trunks_back": len(sides["back"].trunks), "pairs": len(al.pairs)},
+        alignment_log=al.log)
+    for side, T in (("front", np.eye(4)), ("back", it.T_front_back)):
+        sm = sides[side]
+        P = T[None] @ sm.keyframe_poses  # (K, 4, 4) T_map_cam
+        write_tum(out / f"trajectory_{side}_map.tum", StampedTrajectory(
+            sm.keyframe_stamps, P[:, :3, 3], np.array([matrix_to_quat(R) for R in P[:, :3, :3]])))
+
+
 def run(front: str | Path, back: str | Path | None, out: str | Path, cfg: OrchardConfig,
         progress: Progress | None = None) -> RunResult:
     """Reconstruct each side and write the result folder.
@@ -276,6 +316,17 @@ def _run(front: Path, back: Path | None, out: Path, cfg: OrchardConfig, progress
         write_side(out, sides[side])
     if cfg.trunks.source != "off" and cfg.input.mode == "rgbd":
         write_landmarks(out, sides, cfg)
+        if cfg.merge.method != "off" and set(sides) == {"front", "back"}:
+            t0 = time.perf_counter()
+            try:
+                al, it = merge_sides(sides["front"], sides["back"], cfg)
+            except AlignmentError as err:
+                # Each side's own results stay valid; a merge is not guessed.
+                log.warning("side merge refused: %s (no side_merge.json written)", err)
+            else:
+                write_merge(out, al, it, sides)
+                log.info("sides merged on %d trunk pairs: %s", len(al.pairs), "; ".join(al.log))
+            timings.add("merge", time.perf_counter() - t0)
     write_timings(out / "timings.json", timings.stages, frames=timings.frames,
                   recording_duration_s=timings.recording_duration_s)
     atomic_write_text(out / "config.effective.yaml", dump_yaml(cfg))

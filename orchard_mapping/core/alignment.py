@@ -105,11 +105,23 @@ BOUNDARY_INLIER_M = 0.10  # m, boundary points farther from the other side's are
 
 # --------------------------------------------------------------------------- canonical frame
 
+def _first_per_cell(points: np.ndarray, cell: float) -> np.ndarray:
+    """Indices (sorted) of one point (the first) per occupied cell of a `cell` grid; points (N, D).
+
+    Cells are keyed by one int64 (np.unique over rows of a 2D array took 4.3 of 5.6 s on 10 trees)."""
+    keys = np.floor(points / cell).astype(np.int64)
+    keys -= keys.min(axis=0)
+    span = keys.max(axis=0) + 1
+    flat = np.zeros(len(points), np.int64)
+    for d in range(points.shape[1]):
+        flat = flat * int(span[d]) + keys[:, d]
+    _, first = np.unique(flat, return_index=True)
+    return np.sort(first)
+
+
 def _voxel(points: np.ndarray, cell: float) -> np.ndarray:
     """(Q, 3) one point (the first) per occupied cell of a `cell` grid."""
-    keys = np.floor(points / cell).astype(np.int64)
-    _, first = np.unique(keys, axis=0, return_index=True)
-    return points[np.sort(first)]
+    return points[_first_per_cell(points, cell)]
 
 
 def canonical_frame(points: np.ndarray, poses: np.ndarray, side: str, params: AlignmentParams,
@@ -191,9 +203,7 @@ def _front_view_boundary(points_c: np.ndarray, z_plane: float, params: Alignment
     xy = points_c[sel][:, :2]
     if len(xy) < 10:
         return np.zeros((0, 2))
-    keys = np.floor(xy / params.view_cell_m).astype(np.int64)
-    _, first = np.unique(keys, axis=0, return_index=True)
-    b = alpha_boundary(xy[first], params.alpha_m)
+    b = alpha_boundary(xy[_first_per_cell(xy, params.view_cell_m)], params.alpha_m)
     if len(b) > params.boundary_points:
         b = b[rng.choice(len(b), params.boundary_points, replace=False)]
     return b

@@ -75,7 +75,10 @@ class TrunkParams:
     diameter_height_m: float = 0.30  # m above the local ground: where the diameter is read (horticulture's habit)
     band_m: float = 0.16  # m, length of the trunk segment fitted around the diameter height
     associate_radius_m: float = 0.25  # m, detections closer than this across the row are one trunk
-    min_observations: int = 2  # detections a trunk landmark needs
+    # Detections a trunk landmark needs. Frames are detect_every_m apart, so a trunk in view over a metre
+    # of path has ~7: on the 10-tree rows every true trunk had 6 or more; the one landmark made up from
+    # a glimpse (demo row, back side, a 35 mm "trunk" beside a real one) had 2.
+    min_observations: int = 3
     min_mask_pixels: int = 150  # smaller masks (far or clipped trunks) are not used
     visibility_tol_m: float = 0.03  # m, a fused point is hidden in a frame when that frame saw depth this much closer
     max_axis_angle_deg: float = 30.0  # deg, trunk axis vs the side's up direction (lean + camera roll)

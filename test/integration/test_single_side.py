@@ -270,6 +270,23 @@ def test_the_shipped_detector_finds_each_trunk_and_measures_it(reconstructed_mod
         accuracy.at_most(f"{side} trunk diameter MAE (shipped detector), mm", t["diameter_mae_mm"], 4.0)
 
 
+def test_the_sides_are_merged_on_their_shared_trunks(reconstructed_model, accuracy):
+    """Initial alignment + initial transform (no semantic BA yet) on the 2-tree row: both trees paired,
+    both sides' trunk axes agree, and the merge against the truth at the trunk bases. The issue's merge
+    goals (1 cm, 0.2 deg) are for after semantic BA; these bounds are the initial transform's: well
+    inside the 0.15 m pairing radius, a tilt about the row left for the bundle adjustment."""
+    sim, out = reconstructed_model
+    sm = json.loads((out / "side_merge.json").read_text())
+    assert sm["method"] == "initial" and sm["overlap"]["pairs"] == 2
+    for p in sm["residuals"]["pairs"]:
+        accuracy.at_most("paired trunk axes after the merge, deg", p["axis_deg"], 2.0)
+        accuracy.at_most("back trunk axis point off the front axis, mm", p["line_mm"], 15.0)
+    m = evaluate_result(sim / "ground_truth.json", out).to_dict()["merge"]
+    accuracy.at_most("initial merge error at the trunk bases (max), mm", m["max_translation_error_mm"], 30.0)
+    accuracy.at_most("initial merge rotation error, deg", m["rotation_error_deg"], 2.5)
+    assert (out / "trajectory_back_map.tum").is_file()
+
+
 def test_trunk_diameters_of_each_side_within_goals(reconstructed, accuracy):
     """Issue goals (trunks from the simulator's masks): diameter MAE <= 4 mm, bias within +-2 mm, recall
     >= 95 % of the trunks in view, precision >= 98 %; the 2D term of eq. objectCylinder is on."""
@@ -339,6 +356,9 @@ def test_a_side_without_trunks_still_writes_its_map_and_says_so(short_sim, tmp_p
     trunks = json.loads((out / "trunks.json").read_text())["sides"]
     assert trunks["front"]["trunks"] == [] and trunks["back"]["trunks"] == []
     assert "front: no trunk found" in caplog.text
+    # no merge is guessed without trunks: the refusal is said, and no side_merge.json written
+    assert "side merge refused" in caplog.text and "seen from both sides" in caplog.text
+    assert not (out / "side_merge.json").exists()
 
 
 def test_blank_frames_do_not_crash_the_front_end(short_sim, tmp_path):
