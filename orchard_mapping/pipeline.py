@@ -23,17 +23,20 @@ import numpy as np
 from orchard_mapping.config import OrchardConfig, dump_yaml
 from orchard_mapping.core.alignment import AlignmentSide, SideAlignment, align_sides
 from orchard_mapping.core.bundle_adjustment import BAResult, bundle_adjust, optimise_pose_graph
+from orchard_mapping.core.cylinder import CylinderError, fit_cylinders_shared_radius
 from orchard_mapping.core.fusion import FusionResult, fuse_side
 from orchard_mapping.core.merge import InitialTransform, SemanticPair, initial_transform
 from orchard_mapping.core.geometry import matrix_to_quat
 from orchard_mapping.core.odometry import RGBDFrontEnd
+from orchard_mapping.core.semantic_ba import SemanticBAResult, SideShapes, TrunkShape, semantic_bundle_adjust, trunk_frame
 from orchard_mapping.core.sidemap import FrontEndResult, LoopClosure, SideMap
 from orchard_mapping.core.trunks import TrunkLandmark, TrunkView, build_trunk_landmarks
 from orchard_mapping.core.types import RGBDFrame, StampedTrajectory
 from orchard_mapping.errors import AlignmentError, BagFormatError
 from orchard_mapping.io.bags import RGBDSequence, read_rgbd
 from orchard_mapping.io.landmarks import GROUNDS_JSON, TRUNKS_JSON, write_grounds, write_trunks
-from orchard_mapping.io.results import atomic_write_text, write_side_merge, write_timings, write_tum
+from orchard_mapping.io.results import (ResultTree, atomic_write_text, write_side_merge, write_timings, write_trees,
+                                       write_tum)
 
 log = logging.getLogger(__name__)
 
@@ -232,8 +235,39 @@ def write_landmarks(out: Path, sides: dict[str, SideMap], cfg: OrchardConfig) ->
     write_grounds(out / GROUNDS_JSON, by_side)
 
 
-def merge_sides(front: SideMap, back: SideMap, cfg: OrchardConfig) -> tuple[SideAlignment, InitialTransform]:
-    """Initial alignment (global features) then the initial transform (paired trunks and grounds)."""
+@dataclass(frozen=True)
+class MergeOutcome:
+    alignment: SideAlignment
+    initial: InitialTransform
+    sba: SemanticBAResult | None  # None with merge.method "initial"
+
+
+def _trunk_shapes(sm: SideMap, ids: list[int], T_map_odom: np.ndarray, height_m: float) -> list[TrunkShape]:
+    """Each paired trunk of a side as the semantic BA measures it: its frame (origin on the whole-trunk
+    axis at the diameter height, z along it, x towards map x) and local ground, in the camera of the
+    observation that saw most of it. (The band cylinder's own axis, fitted on 16 cm of trunk, tilts
+    5-18 deg off the whole trunk's on the 10-tree rows: only its radius is used.)"""
+    by_id = {t.id: t for t in sm.trunks}
+    out = []
+    for tree, lid in enumerate(ids):
+        lm = by_id[lid]
+        k = max(lm.observations, key=lambda o: o.band_pixels + int(o.detection.mask.sum())).keyframe
+        axis_map = T_map_odom[:3, :3] @ lm.axis
+        origin_map = T_map_odom[:3, :3] @ (lm.base + height_m * lm.axis) + T_map_odom[:3, 3]
+        T_map_cam = T_map_odom @ sm.keyframe_poses[k]
+        ground = None
+        if lm.ground is not None:
+            R, t = sm.keyframe_poses[k][:3, :3], sm.keyframe_poses[k][:3, 3]
+            n = np.asarray(lm.ground.normal, float)
+            ground = np.array([*(R.T @ n), n @ t + lm.ground.offset])
+        out.append(TrunkShape(tree, k, np.linalg.inv(T_map_cam) @ trunk_frame(origin_map, axis_map,
+                                                                             np.array([1.0, 0.0, 0.0])), ground))
+    return out
+
+
+def merge_sides(front: SideMap, back: SideMap, cfg: OrchardConfig) -> MergeOutcome:
+    """Initial alignment (global features), the initial transform (paired trunks and grounds), then the
+    semantic bundle adjustment of both sides (merge.method)."""
     def side_input(sm: SideMap) -> AlignmentSide:
         t = sm.trunks
         return AlignmentSide(sm.cloud_points, sm.keyframe_poses, np.array([x.base for x in t]).reshape(-1, 3),
@@ -251,23 +285,96 @@ def merge_sides(front: SideMap, back: SideMap, cfg: OrchardConfig) -> tuple[Side
         pairs.append(SemanticPair(i, j, f.axis, f.base, b.axis, b.base,
                                   (f.ground.normal, f.ground.point) if both else None,
                                   (b.ground.normal, b.ground.point) if both else None))
-    return al, initial_transform(pairs, cfg.merge)
+    it = initial_transform(pairs, cfg.merge)
+    sba = None
+    if cfg.merge.method == "semantic_ba":
+        h = cfg.trunks.diameter_height_m
+        sba = semantic_bundle_adjust(
+            SideShapes(front.keyframe_poses, _trunk_shapes(front, [i for i, _ in al.pairs], np.eye(4), h)),
+            SideShapes(it.T_front_back[None] @ back.keyframe_poses,
+                       _trunk_shapes(back, [j for _, j in al.pairs], it.T_front_back, h)),
+            cfg.semantic_ba)
+    return MergeOutcome(al, it, sba)
 
 
-def write_merge(out: Path, al: SideAlignment, it: InitialTransform, sides: dict[str, SideMap]) -> None:
-    """side_merge.json and the back trajectory in map (= odom_front)."""
+def two_side_trees(m: MergeOutcome, sides: dict[str, SideMap], cfg: OrchardConfig) -> list[ResultTree]:
+    """Every trunk of either side as a tree in map: paired ones with the two-side diameter of eq.
+    objectCylinderFB (one radius from both sides' band points and views), the others flagged one-sided."""
+    tp = cfg.trunks
+    by = {side: {t.id: t for t in sides[side].trunks} for side in ("front", "back")}
+    T_fb = m.initial.T_front_back
+    intr = sides["front"].intrinsics
+    rng = np.random.default_rng(cfg.seed)
+    trees: list[ResultTree] = []
+    paired = {"front": set(), "back": set()}
+    for k, (i, j) in enumerate(m.alignment.pairs):
+        f, b = by["front"][i], by["back"][j]
+        paired["front"].add(i)
+        paired["back"].add(j)
+        if m.sba is not None:  # the shared trunk after the semantic BA: down its axis to the ground
+            Tt = m.sba.trunks_map[k]
+            pos = Tt[:3, 3] - tp.diameter_height_m * Tt[:3, 2]
+        else:
+            pos = 0.5 * (f.base + T_fb[:3, :3] @ b.base + T_fb[:3, 3])
+        diameter, flags = None, []
+        if f.band is not None and b.band is not None:
+            try:
+                cyls = fit_cylinders_shared_radius(
+                    [(f.band_points, f.band_normals, f.band_views, f.band.cylinder),
+                     (b.band_points, b.band_normals, b.band_views, b.band.cylinder)], intr, rng,
+                    threshold_m=tp.ransac_threshold_m, radius_range_m=(tp.radius_min_m, tp.radius_max_m),
+                    sigma_3d_m=tp.sigma_3d_m, sigma_px=tp.sigma_px, lam=tp.lam, huber_k=tp.huber_k,
+                    edge_snap_px=tp.edge_snap_px)
+                diameter = 2.0 * cyls[0].radius
+            except CylinderError:
+                flags.append("two_side_fit_failed")
+        if diameter is None:
+            one = [t.diameter_m for t in (f, b) if t.diameter_m is not None]
+            diameter = float(np.mean(one)) if one else None
+            if not one:
+                flags.append("trunk_hidden_at_diameter_height")
+        trees.append(ResultTree(len(trees), tuple(float(v) for v in pos), diameter, per_side={
+            "front": {"trunk_id": i, "diameter_m": f.diameter_m},
+            "back": {"trunk_id": j, "diameter_m": b.diameter_m}}, flags=tuple(flags)))
+    for side, T in (("front", np.eye(4)), ("back", T_fb)):
+        for t in sides[side].trunks:
+            if t.id in paired[side]:
+                continue
+            pos = T[:3, :3] @ t.base + T[:3, 3]
+            trees.append(ResultTree(len(trees), tuple(float(v) for v in pos), t.diameter_m,
+                                    per_side={side: {"trunk_id": t.id, "diameter_m": t.diameter_m}},
+                                    flags=(f"seen_from_{side}_only",)))
+    return trees
+
+
+def write_merge(out: Path, m: MergeOutcome, sides: dict[str, SideMap]) -> None:
+    """side_merge.json and both sides' trajectories in map (= odom_front)."""
+    al, it, sba = m.alignment, m.initial, m.sba
+    extra: dict = {}
+    if sba is not None:
+        pair_ids = list(al.pairs)
+        extra["semantic_ba"] = {
+            "trunk_axis_gap_mm": {"before": {"median": float(np.median(list(sba.gaps_before_mm.values()))),
+                                             "max": float(max(sba.gaps_before_mm.values()))},
+                                  "after": {"median": float(np.median(list(sba.gaps_after_mm.values()))),
+                                            "max": float(max(sba.gaps_after_mm.values()))},
+                                  "per_pair": [{"front_id": pair_ids[k][0], "back_id": pair_ids[k][1],
+                                                "before": sba.gaps_before_mm[k], "after": sba.gaps_after_mm[k]}
+                                               for k in sorted(sba.gaps_after_mm)]},
+            "error_initial": sba.error_initial, "error_final": sba.error_final, "iterations": sba.iterations}
     write_side_merge(
-        out / "side_merge.json", it.T_front_back, method="initial",
+        out / "side_merge.json", it.T_front_back, method="semantic_ba" if sba is not None else "initial",
         residuals={"pairs": [asdict(r) for r in it.residuals], "huber_cost_initial": it.cost_initial,
                    "huber_cost_final": it.cost_final, "boundary_rms_m": al.boundary_rms_m},
         overlap={"x_range_m": list(al.overlap_m), "trunks_front": len(sides["front"].trunks),
                  "trunks_back": len(sides["back"].trunks), "pairs": len(al.pairs)},
-        alignment_log=al.log)
-    for side, T in (("front", np.eye(4)), ("back", it.T_front_back)):
-        sm = sides[side]
-        P = T[None] @ sm.keyframe_poses  # (K, 4, 4) T_map_cam
+        alignment_log=al.log, **extra)
+    poses = {"front": sides["front"].keyframe_poses, "back": it.T_front_back[None] @ sides["back"].keyframe_poses}
+    if sba is not None:
+        poses = {"front": sba.front_poses, "back": sba.back_poses}
+    for side, P in poses.items():  # (K, 4, 4) T_map_cam
         write_tum(out / f"trajectory_{side}_map.tum", StampedTrajectory(
-            sm.keyframe_stamps, P[:, :3, 3], np.array([matrix_to_quat(R) for R in P[:, :3, :3]])))
+            sides[side].keyframe_stamps, P[:, :3, 3], np.array([matrix_to_quat(R) for R in P[:, :3, :3]])))
 
 
 def run(front: str | Path, back: str | Path | None, out: str | Path, cfg: OrchardConfig,
@@ -319,13 +426,15 @@ def _run(front: Path, back: Path | None, out: Path, cfg: OrchardConfig, progress
         if cfg.merge.method != "off" and set(sides) == {"front", "back"}:
             t0 = time.perf_counter()
             try:
-                al, it = merge_sides(sides["front"], sides["back"], cfg)
+                merged = merge_sides(sides["front"], sides["back"], cfg)
             except AlignmentError as err:
                 # Each side's own results stay valid; a merge is not guessed.
                 log.warning("side merge refused: %s (no side_merge.json written)", err)
             else:
-                write_merge(out, al, it, sides)
-                log.info("sides merged on %d trunk pairs: %s", len(al.pairs), "; ".join(al.log))
+                write_merge(out, merged, sides)
+                write_trees(out, two_side_trees(merged, sides, cfg), frame="map")
+                log.info("sides merged on %d trunk pairs: %s", len(merged.alignment.pairs),
+                         "; ".join(merged.alignment.log))
             timings.add("merge", time.perf_counter() - t0)
     write_timings(out / "timings.json", timings.stages, frames=timings.frames,
                   recording_duration_s=timings.recording_duration_s)

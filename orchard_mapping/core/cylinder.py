@@ -45,6 +45,7 @@ __all__ = [
     "CylinderView",
     "cylinder_from_oriented_points",
     "fit_cylinder",
+    "fit_cylinders_shared_radius",
     "point_distance",
     "ransac_cylinder",
     "view_residuals",
@@ -293,6 +294,56 @@ def _basis(a: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     return e1, np.cross(a, e1)
 
 
+def _refine(parts: list[tuple[Cylinder, np.ndarray, list[_ViewData]]], intr: CameraIntrinsics, *,
+            sigma_3d_m: float, w2: float, huber_k: float) -> list[Cylinder]:
+    """LM with Huber loss on eq. objectCylinder over cylinders that share one radius: each part (its
+    initial cylinder, 3D-term points (N, 3), prepared views) has its own axis and origin (4 parameters,
+    across its initial axis); the radius is common (eq. objectCylinderFB for two sides; one part is
+    eq. objectCylinder)."""
+    bases = [_basis(c0.axis) for c0, _, _ in parts]
+    r0 = float(np.mean([c0.radius for c0, _, _ in parts]))
+
+    def unpack(x: np.ndarray) -> list[Cylinder]:
+        out = []
+        for i, ((c0, _, _), (e1, e2)) in enumerate(zip(parts, bases)):
+            a = c0.axis + x[4 * i] * e1 + x[4 * i + 1] * e2
+            a /= np.linalg.norm(a)
+            out.append(Cylinder(a, c0.origin + x[4 * i + 2] * e1 + x[4 * i + 3] * e2, r0 + x[-1]))
+        return out
+
+    def residuals(x: np.ndarray) -> np.ndarray:
+        res = []
+        for (_, P, data), cyl in zip(parts, unpack(x)):
+            res.append(point_distance(P, cyl) / sigma_3d_m)
+            for d in data:
+                r_px, r_edge = _view_terms(cyl, d, intr)
+                res += [w2 * r_px.ravel(), w2 * r_edge]
+        return np.concatenate(res)
+
+    sol = least_squares(residuals, np.zeros(4 * len(parts) + 1), loss="huber", f_scale=huber_k, method="trf",
+                        x_scale=[0.05, 0.05, 0.01, 0.01] * len(parts) + [0.005], max_nfev=100)
+    return unpack(sol.x)
+
+
+def fit_cylinders_shared_radius(parts: list[tuple[np.ndarray, np.ndarray, list[CylinderView], Cylinder]],
+                                intr: CameraIntrinsics, rng: np.random.Generator, *, threshold_m: float = 0.01,
+                                radius_range_m: tuple[float, float] = (0.01, 0.25), sigma_3d_m: float = 0.003,
+                                sigma_px: float = 1.0, lam: float = 1.0, huber_k: float = 1.345,
+                                max_pixels_per_view: int = 400, edge_snap_px: int = 0) -> list[Cylinder]:
+    """Eq. objectCylinderFB: one radius for a trunk's segments seen from several sides, each segment with
+    its own axis and origin (each side's points and views are in that side's frame). parts: (points
+    (N, 3), normals (N, 3), views, the side's own fit as the start)."""
+    prepared = []
+    for P, _, views, c0 in parts:
+        P = np.asarray(P, float)
+        P = P[np.abs(point_distance(P, c0)) < threshold_m]
+        prepared.append((c0, P, [_prepare_view(v, intr, rng, max_pixels_per_view, edge_snap_px) for v in views]))
+    cyls = _refine(prepared, intr, sigma_3d_m=sigma_3d_m, w2=np.sqrt(lam) / sigma_px, huber_k=huber_k)
+    if not radius_range_m[0] <= cyls[0].radius <= radius_range_m[1]:
+        raise CylinderError(f"two-side refinement left the radius range: r = {cyls[0].radius:.4f} m")
+    return cyls
+
+
 def fit_cylinder(points: np.ndarray, normals: np.ndarray, views: list[CylinderView], intr: CameraIntrinsics,
                  rng: np.random.Generator, *, up: np.ndarray, threshold_m: float = 0.01,
                  iterations: int = 200, max_axis_angle_deg: float = 30.0,
@@ -320,26 +371,7 @@ def fit_cylinder(points: np.ndarray, normals: np.ndarray, views: list[CylinderVi
         inl = np.abs(point_distance(points, cyl0)) < threshold_m
     P = points[inl]  # (N_in, 3) 3D term: the RANSAC inliers
     data = [_prepare_view(v, intr, rng, max_pixels_per_view, edge_snap_px) for v in views] if use_2d else []
-    e1, e2 = _basis(cyl0.axis)
-    w2 = np.sqrt(lam) / sigma_px
-
-    def unpack(x: np.ndarray) -> Cylinder:
-        a = cyl0.axis + x[0] * e1 + x[1] * e2
-        a /= np.linalg.norm(a)
-        return Cylinder(a, cyl0.origin + x[2] * e1 + x[3] * e2, cyl0.radius + x[4])
-
-    def residuals(x: np.ndarray) -> np.ndarray:
-        cyl = unpack(x)
-        parts = [point_distance(P, cyl) / sigma_3d_m]
-        for d in data:
-            r_px, r_edge = _view_terms(cyl, d, intr)
-            parts += [w2 * r_px.ravel(), w2 * r_edge]
-        return np.concatenate(parts)
-
-    x0 = np.zeros(5)
-    sol = least_squares(residuals, x0, loss="huber", f_scale=huber_k, method="trf", x_scale=[0.05, 0.05, 0.01, 0.01, 0.005],
-                        max_nfev=100)
-    cyl = unpack(sol.x)
+    cyl = _refine([(cyl0, P, data)], intr, sigma_3d_m=sigma_3d_m, w2=np.sqrt(lam) / sigma_px, huber_k=huber_k)[0]
     if not radius_range_m[0] <= cyl.radius <= radius_range_m[1]:
         raise CylinderError(f"cylinder refinement left the radius range: r = {cyl.radius:.4f} m")
     d3 = point_distance(points, cyl)

@@ -155,6 +155,11 @@ class TrunkLandmark:
     n_points: int  # fused trunk points
     observations: list[TrunkObservation]
     flags: list[str] = field(default_factory=list)  # e.g. "hidden_at_diameter_height", "no_ground"
+    # What the two-side diameter (eq. objectCylinderFB) refits: the band's fused points and normals (odom)
+    # and its views (masks limited to the band rows; depth arrays shared with the side map). Not written out.
+    band_points: np.ndarray | None = None  # (N, 3)
+    band_normals: np.ndarray | None = None  # (N, 3)
+    band_views: list[CylinderView] = field(default_factory=list)
 
 
 def side_up_direction(poses: np.ndarray) -> np.ndarray:
@@ -401,4 +406,7 @@ def _model_trunk(lm_id: int, obs: list[tuple[TrunkView, Detection]], places: np.
     length = float(h_top - (base @ axis))
     return TrunkLandmark(id=lm_id, axis=axis, base=base, length_m=length, ground=ground, band=band,
                          diameter_m=2.0 * band.cylinder.radius if band is not None else None,
-                         baseline_band=baseline, n_points=len(trunk), observations=observations, flags=flags)
+                         baseline_band=baseline, n_points=len(trunk), observations=observations, flags=flags,
+                         band_points=trunk[in_band] if band is not None else None,
+                         band_normals=normals[in_band] if band is not None else None,
+                         band_views=band_views if band is not None else [])

@@ -1,0 +1,195 @@
+"""Semantic bundle adjustment of the two merged sides (paper: "Semantic Bundle Adjustment", eq. objectSBA).
+
+The paper adds to the feature BA of both sides one cost per point of each semantic object: a trunk's
+points must lie on one cylinder, a tree's ground points within one plane's band, whichever side saw
+them. Here the same coupling is built from GTSAM's built-in factors on each side's fitted shapes
+(a Python factor per point would cost seconds per iteration: docs/dependencies.md):
+
+- each side's keyframe poses form a chain of BetweenFactorPose3 with the relative poses of that
+  side's own bundle adjustment: the side may bend, as much as its drift allows (sigmas per step);
+- each tree paired across the sides is one trunk variable (Pose3 in map: origin on the axis at the
+  diameter height, z along the axis). Each side measures it from one keyframe (the one whose view of
+  the trunk had the most pixels) as a BetweenFactorPose3 camera -> trunk whose noise is free about the
+  axis (a cylinder has no heading) and loose along it (where the diameter height falls depends on the
+  ground), tight across it and in tilt: the two halves of a trunk must share one axis;
+- each tree with a local ground on both sides is one OrientedPlane3 variable, measured from the same
+  keyframes (OrientedPlane3Factor);
+- gauge: a prior on the first front keyframe (map = odom_front).
+
+Levenberg-Marquardt with Huber-robust semantic factors. Frames: poses T_map_cam of the colour
+optical frame, metres, radians inside GTSAM.
+"""
+
+from __future__ import annotations
+
+import logging
+from dataclasses import dataclass
+
+import gtsam
+import numpy as np
+from gtsam.symbol_shorthand import B, F, G, T
+
+from orchard_mapping.errors import AlignmentError
+
+__all__ = ["SemanticBAParams", "SideShapes", "SemanticBAResult", "TrunkShape", "semantic_bundle_adjust",
+           "trunk_frame"]
+
+logger = logging.getLogger(__name__)
+
+GAUGE_SIGMA = 1e-6  # rad and m: the first front keyframe is held
+
+
+@dataclass
+class SemanticBAParams:
+    """Settings of the semantic bundle adjustment (config section `semantic_ba`)."""
+
+    __pydantic_config__ = {"extra": "forbid"}
+
+    # Per keyframe step of a side's own chain. A side drifts 0.1-0.3 % of its path (benchmarks/
+    # single_side.py): ~1 cm over 10 m, i.e. ~0.7 mm per 5 cm step as a random walk.
+    step_sigma_rot_deg: float = 0.02
+    step_sigma_trans_m: float = 0.001
+    # A side's trunk: axis point across the axis, along it, axis tilt; heading is free.
+    trunk_sigma_across_m: float = 0.003
+    trunk_sigma_along_m: float = 0.03
+    trunk_sigma_tilt_deg: float = 0.5
+    # A side's local ground: normal (deg) and offset (m).
+    ground_sigma_normal_deg: float = 2.0
+    ground_sigma_offset_m: float = 0.01
+    huber_k: float = 1.345
+    max_iterations: int = 50
+
+
+@dataclass(frozen=True)
+class TrunkShape:
+    """One side's view of a tree: its trunk frame and local ground, from one keyframe."""
+
+    tree: int  # the pair index: the same tree on both sides
+    keyframe: int  # index into that side's poses
+    T_cam_trunk: np.ndarray  # (4, 4) trunk frame (origin on the axis at the diameter height, z = axis)
+    ground_cam: np.ndarray | None = None  # (4,) plane n . p + d = 0 in that camera frame (n up), or None
+
+
+@dataclass(frozen=True)
+class SideShapes:
+    poses: np.ndarray  # (K, 4, 4) T_map_cam, initial (the back side already moved by the initial transform)
+    trunks: list[TrunkShape]
+
+
+@dataclass(frozen=True)
+class SemanticBAResult:
+    front_poses: np.ndarray  # (K_f, 4, 4) T_map_cam
+    back_poses: np.ndarray  # (K_b, 4, 4)
+    trunks_map: dict[int, np.ndarray]  # tree -> (4, 4) trunk frame in map
+    gaps_before_mm: dict[int, float]  # tree -> distance between the two sides' axes at the diameter height
+    gaps_after_mm: dict[int, float]
+    error_initial: float
+    error_final: float
+    iterations: int
+
+
+def trunk_frame(origin: np.ndarray, axis: np.ndarray, ref: np.ndarray) -> np.ndarray:
+    """(4, 4) frame with the origin on the axis, z along it, x towards `ref` (3,) made perpendicular."""
+    z = np.asarray(axis, float) / np.linalg.norm(axis)
+    x = np.asarray(ref, float) - (np.asarray(ref, float) @ z) * z
+    if np.linalg.norm(x) < 1e-6:
+        x = np.cross(z, [0.0, 0.0, 1.0]) if abs(z[2]) < 0.9 else np.cross(z, [1.0, 0.0, 0.0])
+    x /= np.linalg.norm(x)
+    M = np.eye(4)
+    M[:3, :3] = np.stack([x, np.cross(z, x), z], 1)
+    M[:3, 3] = origin
+    return M
+
+
+def _axis_gap_mm(Tf: np.ndarray, Tb: np.ndarray) -> float:
+    """mm: the back trunk's axis point off the front trunk's axis line (both (4, 4) in map)."""
+    z = Tf[:3, 2]
+    d = Tb[:3, 3] - Tf[:3, 3]
+    return float(1000 * np.linalg.norm(d - (d @ z) * z))
+
+
+def _trunks_in_map(front: SideShapes, back: SideShapes, fp: np.ndarray, bp: np.ndarray) -> dict[int, float]:
+    f = {t.tree: fp[t.keyframe] @ t.T_cam_trunk for t in front.trunks}
+    b = {t.tree: bp[t.keyframe] @ t.T_cam_trunk for t in back.trunks}
+    return {k: _axis_gap_mm(f[k], b[k]) for k in sorted(set(f) & set(b))}
+
+
+def semantic_bundle_adjust(front: SideShapes, back: SideShapes, params: SemanticBAParams) -> SemanticBAResult:
+    """Both sides' keyframe poses and the shared trunks and grounds (module docstring)."""
+    shared = {t.tree for t in front.trunks} & {t.tree for t in back.trunks}
+    if len(shared) < 2:
+        raise AlignmentError(f"semantic BA needs at least two trees seen from both sides, got {len(shared)}")
+    graph = gtsam.NonlinearFactorGraph()
+    values = gtsam.Values()
+    step = gtsam.noiseModel.Diagonal.Sigmas(np.array([np.radians(params.step_sigma_rot_deg)] * 3
+                                                     + [params.step_sigma_trans_m] * 3))
+    huber = gtsam.noiseModel.mEstimator.Huber.Create(params.huber_k)
+    trunk_noise = gtsam.noiseModel.Robust.Create(huber, gtsam.noiseModel.Diagonal.Sigmas(np.array(
+        [np.radians(params.trunk_sigma_tilt_deg)] * 2 + [10.0]  # rotation: tilt x, y; heading free
+        + [params.trunk_sigma_across_m] * 2 + [params.trunk_sigma_along_m])))
+    # OrientedPlane3Factor takes a Gaussian model only: a pair of grounds that disagree by more than 3
+    # sigmas at the initial poses (weeds taken for ground on one side) is left out instead.
+    plane_noise = gtsam.noiseModel.Diagonal.Sigmas(np.array(
+        [np.radians(params.ground_sigma_normal_deg)] * 2 + [params.ground_sigma_offset_m]))
+    for sym, side in ((F, front), (B, back)):
+        for k, P in enumerate(side.poses):
+            values.insert(sym(k), gtsam.Pose3(P))
+        for k in range(len(side.poses) - 1):
+            rel = gtsam.Pose3(np.linalg.inv(side.poses[k]) @ side.poses[k + 1])
+            graph.add(gtsam.BetweenFactorPose3(sym(k), sym(k + 1), rel, step))
+    graph.add(gtsam.PriorFactorPose3(F(0), gtsam.Pose3(front.poses[0]),
+                                     gtsam.noiseModel.Isotropic.Sigma(6, GAUGE_SIGMA)))
+    grounds: set[int] = set()
+    for sym, side in ((F, front), (B, back)):
+        for t in side.trunks:
+            if t.tree not in shared:
+                continue
+            if not values.exists(T(t.tree)):  # initial: the front side's trunk
+                values.insert(T(t.tree), gtsam.Pose3(front.poses[_kf(front, t.tree)] @ _shape(front, t.tree).T_cam_trunk))
+            graph.add(gtsam.BetweenFactorPose3(sym(t.keyframe), T(t.tree), gtsam.Pose3(t.T_cam_trunk), trunk_noise))
+    for t in front.trunks:
+        other = _shape(back, t.tree) if t.tree in shared else None
+        if t.ground_cam is None or other is None or other.ground_cam is None:
+            continue
+        n_f, d_f = _plane_in_map(t.ground_cam, front.poses[t.keyframe])
+        n_b, d_b = _plane_in_map(other.ground_cam, back.poses[other.keyframe])
+        at = _shape(front, t.tree)
+        x = (front.poses[at.keyframe] @ at.T_cam_trunk)[:3, 3]  # the trunk: where the two planes are compared
+        if (np.degrees(np.arccos(np.clip(n_f @ n_b, -1, 1))) > 3 * params.ground_sigma_normal_deg
+                or abs((n_b @ x + d_b) - (n_f @ x + d_f)) > 3 * params.ground_sigma_offset_m):
+            continue
+        values.insert(G(t.tree), gtsam.OrientedPlane3(*n_f, d_f))
+        graph.add(gtsam.OrientedPlane3Factor(np.asarray(t.ground_cam, float), plane_noise, F(t.keyframe), G(t.tree)))
+        graph.add(gtsam.OrientedPlane3Factor(np.asarray(other.ground_cam, float), plane_noise, B(other.keyframe),
+                                             G(t.tree)))
+        grounds.add(t.tree)
+    before = _trunks_in_map(front, back, front.poses, back.poses)
+    lm = gtsam.LevenbergMarquardtParams()
+    lm.setMaxIterations(params.max_iterations)
+    opt = gtsam.LevenbergMarquardtOptimizer(graph, values, lm)
+    e0 = graph.error(values)
+    result = opt.optimize()
+    e1 = graph.error(result)
+    fp = np.array([result.atPose3(F(k)).matrix() for k in range(len(front.poses))])
+    bp = np.array([result.atPose3(B(k)).matrix() for k in range(len(back.poses))])
+    after = _trunks_in_map(front, back, fp, bp)
+    logger.info("semantic BA: %d + %d keyframes, %d trunks, %d grounds; error %.1f -> %.1f in %d iterations; "
+                "trunk axis gap median %.1f -> %.1f mm", len(fp), len(bp), len(shared), len(grounds), e0, e1,
+                opt.iterations(), np.median(list(before.values())), np.median(list(after.values())))
+    return SemanticBAResult(fp, bp, {k: result.atPose3(T(k)).matrix() for k in sorted(shared)}, before, after,
+                            float(e0), float(e1), int(opt.iterations()))
+
+
+def _plane_in_map(plane_cam: np.ndarray, T_map_cam: np.ndarray) -> tuple[np.ndarray, float]:
+    """(n (3,), d) of n . p + d = 0 in map, from the plane (4,) in the camera frame."""
+    R, t = T_map_cam[:3, :3], T_map_cam[:3, 3]
+    n = R @ plane_cam[:3]
+    return n, float(plane_cam[3] - n @ t)
+
+
+def _shape(side: SideShapes, tree: int) -> TrunkShape:
+    return next(t for t in side.trunks if t.tree == tree)
+
+
+def _kf(side: SideShapes, tree: int) -> int:
+    return _shape(side, tree).keyframe

@@ -1,0 +1,88 @@
+"""Semantic bundle adjustment (core.semantic_ba) on a synthetic row: the back side's own reconstruction
+drifted (a slow turn and creep along its path); its trunks and grounds, seen from where the camera
+truly was, pull it back so that each trunk's two halves share one axis."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+from scipy.spatial.transform import Rotation
+
+from orchard_mapping.core.geometry import make_transform
+from orchard_mapping.core.semantic_ba import SemanticBAParams, SideShapes, TrunkShape, semantic_bundle_adjust, trunk_frame
+from orchard_mapping.errors import AlignmentError
+
+TREES_X = 0.75 + 1.5 * np.arange(6)  # m, along the row (map x); trunks at y = 0, ground z = 0
+
+
+def _poses(y: float, n: int = 80) -> np.ndarray:
+    """(n, 4, 4) T_map_cam along the row at y, looking across it (optical z towards y = 0, y down)."""
+    z = np.array([0.0, -np.sign(y), 0.0])
+    yo = np.array([0.0, 0.0, -1.0])
+    R = np.stack([np.cross(yo, z), yo, z], 1)
+    return np.array([make_transform(R, np.array([x, y, 1.0])) for x in np.linspace(0.0, 9.0, n)])
+
+
+def _shapes(true_poses: np.ndarray, rng: np.random.Generator, lean: np.ndarray) -> list[TrunkShape]:
+    out = []
+    for i, x in enumerate(TREES_X):
+        k = int(np.argmin(np.abs(true_poses[:, 0, 3] - x)))  # the keyframe facing the trunk
+        Tm = trunk_frame(np.array([x, 0.0, 0.3]), lean[i], np.array([1.0, 0.0, 0.0]))
+        noise = make_transform(Rotation.from_rotvec(rng.normal(0, 0.002, 3)).as_matrix(), rng.normal(0, 0.001, 3))
+        T_cam_trunk = np.linalg.inv(true_poses[k]) @ Tm @ noise
+        R, t = true_poses[k][:3, :3], true_poses[k][:3, 3]
+        n = np.array([0.0, 0.0, 1.0])
+        out.append(TrunkShape(i, k, T_cam_trunk, np.array([*(R.T @ n), n @ t])))
+    return out
+
+
+def _drifted(poses: np.ndarray, yaw_per_step: float, creep_per_step: float) -> np.ndarray:
+    """Each pose k moved by a turn of k * yaw_per_step (rad) about the first camera and k * creep (m) in x."""
+    out = []
+    for k, P in enumerate(poses):
+        D = make_transform(Rotation.from_rotvec([0, 0, k * yaw_per_step]).as_matrix(), np.zeros(3))
+        c = poses[0][:3, 3]
+        T = make_transform(np.eye(3), c) @ D @ make_transform(np.eye(3), -c)
+        T[0, 3] += k * creep_per_step
+        out.append(T @ P)
+    return np.array(out)
+
+
+def _gap_stats(gaps: dict[int, float]) -> tuple[float, float]:
+    v = np.array(list(gaps.values()))
+    return float(np.median(v)), float(v.max())
+
+
+@pytest.mark.parametrize("seed", [0, 1, 2])
+def test_the_back_side_drift_is_corrected_by_the_shared_trunks(seed):
+    rng = np.random.default_rng(seed)
+    lean = np.column_stack([rng.normal(0, 0.04, 6), rng.normal(0, 0.04, 6), np.ones(6)])
+    front_true, back_true = _poses(-2.0), _poses(2.0)
+    back_init = _drifted(back_true, yaw_per_step=rng.uniform(2e-5, 5e-5), creep_per_step=rng.uniform(1e-4, 3e-4))
+    front = SideShapes(front_true, _shapes(front_true, rng, lean))
+    back = SideShapes(back_init, _shapes(back_true, rng, lean))
+    res = semantic_bundle_adjust(front, back, SemanticBAParams())
+    med0, max0 = _gap_stats(res.gaps_before_mm)
+    med1, max1 = _gap_stats(res.gaps_after_mm)
+    assert max0 > 10.0  # the drift is visible: the halves of the far trunks are centimetres apart
+    assert med1 < 2.0 and max1 < 4.0  # the issue's goals are 5 and 15 mm
+    # The sides themselves are bent towards each other, not only shifted: the back camera's position
+    # relative to the front camera at the same place along the row, against the truth. (Which side
+    # drifted cannot be known from the trunks: the disagreement is shared, so neither side is exact.)
+    inside = (back_true[:, 0, 3] >= TREES_X[0]) & (back_true[:, 0, 3] <= TREES_X[-1])
+    true_rel = back_true[:, :3, 3] - front_true[:, :3, 3]
+    rel0 = np.linalg.norm(back_init[:, :3, 3] - front_true[:, :3, 3] - true_rel, axis=1)[inside].max()
+    rel1 = np.linalg.norm(res.back_poses[:, :3, 3] - res.front_poses[:, :3, 3] - true_rel, axis=1)[inside].max()
+    assert rel1 < 0.6 * rel0
+    np.testing.assert_allclose(res.front_poses[0], front_true[0], atol=1e-5)  # the gauge: map = odom_front
+    assert res.error_final < res.error_initial
+
+
+def test_semantic_ba_needs_two_shared_trees():
+    rng = np.random.default_rng(0)
+    lean = np.column_stack([np.zeros(6), np.zeros(6), np.ones(6)])
+    front_true, back_true = _poses(-2.0), _poses(2.0)
+    front = SideShapes(front_true, _shapes(front_true, rng, lean)[:1])
+    back = SideShapes(back_true, _shapes(back_true, rng, lean))
+    with pytest.raises(AlignmentError, match="two trees"):
+        semantic_bundle_adjust(front, back, SemanticBAParams())
