@@ -21,7 +21,7 @@ from pathlib import Path
 import numpy as np
 
 from orchard_mapping.config import OrchardConfig, dump_yaml
-from orchard_mapping.core.alignment import AlignmentSide, SideAlignment, align_sides
+from orchard_mapping.core.alignment import AlignmentSide, SideAlignment, align_sides, icp_merge, pair_trunks
 from orchard_mapping.core.bundle_adjustment import BAResult, bundle_adjust, optimise_pose_graph
 from orchard_mapping.core.cylinder import CylinderError, fit_cylinders_shared_radius
 from orchard_mapping.core.fusion import FusionResult, fuse_side
@@ -237,9 +237,19 @@ def write_landmarks(out: Path, sides: dict[str, SideMap], cfg: OrchardConfig) ->
 
 @dataclass(frozen=True)
 class MergeOutcome:
-    alignment: SideAlignment
-    initial: InitialTransform
-    sba: SemanticBAResult | None  # None with merge.method "initial"
+    method: str  # merge.method that made it
+    T_front_back: np.ndarray  # (4, 4) rigid odom_front <- odom_back
+    pairs: tuple[tuple[int, int], ...]  # (front trunk id, back trunk id)
+    alignment: SideAlignment | None  # None for the ICP baseline
+    initial: InitialTransform | None
+    sba: SemanticBAResult | None  # only with merge.method "semantic_ba"
+    shapes: tuple[SideShapes, SideShapes] | None  # what the semantic BA measured of each side
+    seconds: dict[str, float]  # per step: alignment, initial_transform, semantic_ba (or icp)
+
+
+def _merge_axis(lm: TrunkLandmark) -> np.ndarray:
+    """The trunk axis the merge uses: with the taper modelled when it was fitted (TrunkLandmark.merge_axis)."""
+    return lm.merge_axis if lm.merge_axis is not None else lm.axis
 
 
 def _trunk_shapes(sm: SideMap, ids: list[int], T_map_odom: np.ndarray, height_m: float) -> list[TrunkShape]:
@@ -252,8 +262,8 @@ def _trunk_shapes(sm: SideMap, ids: list[int], T_map_odom: np.ndarray, height_m:
     for tree, lid in enumerate(ids):
         lm = by_id[lid]
         k = max(lm.observations, key=lambda o: o.band_pixels + int(o.detection.mask.sum())).keyframe
-        axis_map = T_map_odom[:3, :3] @ lm.axis
-        origin_map = T_map_odom[:3, :3] @ (lm.base + height_m * lm.axis) + T_map_odom[:3, 3]
+        axis_map = T_map_odom[:3, :3] @ _merge_axis(lm)
+        origin_map = T_map_odom[:3, :3] @ (lm.base + height_m * _merge_axis(lm)) + T_map_odom[:3, 3]
         T_map_cam = T_map_odom @ sm.keyframe_poses[k]
         ground = None
         if lm.ground is not None:
@@ -261,7 +271,8 @@ def _trunk_shapes(sm: SideMap, ids: list[int], T_map_odom: np.ndarray, height_m:
             n = np.asarray(lm.ground.normal, float)
             ground = np.array([*(R.T @ n), n @ t + lm.ground.offset])
         out.append(TrunkShape(tree, k, np.linalg.inv(T_map_cam) @ trunk_frame(origin_map, axis_map,
-                                                                             np.array([1.0, 0.0, 0.0])), ground))
+                                                                             np.array([1.0, 0.0, 0.0])), ground,
+                              grounded=lm.ground is not None or "diameter_height_from_wide_ground" in lm.flags))
     return out
 
 
@@ -271,30 +282,40 @@ def merge_sides(front: SideMap, back: SideMap, cfg: OrchardConfig) -> MergeOutco
     def side_input(sm: SideMap) -> AlignmentSide:
         t = sm.trunks
         return AlignmentSide(sm.cloud_points, sm.keyframe_poses, np.array([x.base for x in t]).reshape(-1, 3),
-                             np.array([x.axis for x in t]).reshape(-1, 3), np.array([x.id for x in t], int),
+                             np.array([_merge_axis(x) for x in t]).reshape(-1, 3), np.array([x.id for x in t], int),
                              sm.scale_free)
 
     rng = np.random.default_rng(cfg.seed)
+    t0 = time.perf_counter()
+    if cfg.merge.method == "icp":
+        T = icp_merge(side_input(front), side_input(back), cfg.alignment, rng)
+        pairs_icp = pair_trunks(side_input(front), side_input(back), T, cfg.alignment.pair_radius_m)
+        return MergeOutcome("icp", T, pairs_icp, None, None, None, None, {"icp": time.perf_counter() - t0})
     al = align_sides(side_input(front), side_input(back), cfg.alignment, rng)
+    seconds = {"alignment": time.perf_counter() - t0}
     by_f = {t.id: t for t in front.trunks}
     by_b = {t.id: t for t in back.trunks}
     pairs = []
     for i, j in al.pairs:
         f, b = by_f[i], by_b[j]
         both = f.ground is not None and b.ground is not None
-        pairs.append(SemanticPair(i, j, f.axis, f.base, b.axis, b.base,
+        pairs.append(SemanticPair(i, j, _merge_axis(f), f.base, _merge_axis(b), b.base,
                                   (f.ground.normal, f.ground.point) if both else None,
                                   (b.ground.normal, b.ground.point) if both else None))
+    t0 = time.perf_counter()
     it = initial_transform(pairs, cfg.merge)
+    seconds["initial_transform"] = time.perf_counter() - t0
     sba = None
     if cfg.merge.method == "semantic_ba":
+        t0 = time.perf_counter()
         h = cfg.trunks.diameter_height_m
-        sba = semantic_bundle_adjust(
-            SideShapes(front.keyframe_poses, _trunk_shapes(front, [i for i, _ in al.pairs], np.eye(4), h)),
-            SideShapes(it.T_front_back[None] @ back.keyframe_poses,
-                       _trunk_shapes(back, [j for _, j in al.pairs], it.T_front_back, h)),
-            cfg.semantic_ba)
-    return MergeOutcome(al, it, sba)
+        shapes = (SideShapes(front.keyframe_poses, _trunk_shapes(front, [i for i, _ in al.pairs], np.eye(4), h)),
+                  SideShapes(it.T_front_back[None] @ back.keyframe_poses,
+                             _trunk_shapes(back, [j for _, j in al.pairs], it.T_front_back, h)))
+        sba = semantic_bundle_adjust(*shapes, cfg.semantic_ba)
+        seconds["semantic_ba"] = time.perf_counter() - t0
+        return MergeOutcome(cfg.merge.method, it.T_front_back, al.pairs, al, it, sba, shapes, seconds)
+    return MergeOutcome(cfg.merge.method, it.T_front_back, al.pairs, al, it, None, None, seconds)
 
 
 def two_side_trees(m: MergeOutcome, sides: dict[str, SideMap], cfg: OrchardConfig) -> list[ResultTree]:
@@ -302,18 +323,31 @@ def two_side_trees(m: MergeOutcome, sides: dict[str, SideMap], cfg: OrchardConfi
     objectCylinderFB (one radius from both sides' band points and views), the others flagged one-sided."""
     tp = cfg.trunks
     by = {side: {t.id: t for t in sides[side].trunks} for side in ("front", "back")}
-    T_fb = m.initial.T_front_back
+    T_fb = m.T_front_back
     intr = sides["front"].intrinsics
     rng = np.random.default_rng(cfg.seed)
     trees: list[ResultTree] = []
     paired = {"front": set(), "back": set()}
-    for k, (i, j) in enumerate(m.alignment.pairs):
+    for k, (i, j) in enumerate(m.pairs):
         f, b = by["front"][i], by["back"][j]
         paired["front"].add(i)
         paired["back"].add(j)
-        if m.sba is not None:  # the shared trunk after the semantic BA: down its axis to the ground
+        if m.sba is not None and m.shapes is not None:
+            # The shared trunk after the semantic BA, down its axis to the ground: each side's base (where
+            # its axis meets its local ground) placed by that side's adjusted camera; a side without a
+            # local ground has only its lowest trunk point (weeds may hide the foot: 15 cm too high on
+            # the 2-tree test row), so the sides with a ground decide, else the lower base.
             Tt = m.sba.trunks_map[k]
-            pos = Tt[:3, 3] - tp.diameter_height_m * Tt[:3, 2]
+            z = Tt[:3, 2]
+            heights = []
+            for shapes, poses, lm in ((m.shapes[0], m.sba.front_poses, f), (m.shapes[1], m.sba.back_poses, b)):
+                sh = next(x for x in shapes.trunks if x.tree == k)
+                Ts = poses[sh.keyframe] @ sh.T_cam_trunk
+                base_map = Ts[:3, 3] - tp.diameter_height_m * Ts[:3, 2]
+                on_ground = lm.ground is not None or "diameter_height_from_wide_ground" in lm.flags
+                heights.append((on_ground, float((base_map - Tt[:3, 3]) @ z)))
+            grounded = [hh for g, hh in heights if g]
+            pos = Tt[:3, 3] + (float(np.mean(grounded)) if grounded else min(hh for _, hh in heights)) * z
         else:
             pos = 0.5 * (f.base + T_fb[:3, :3] @ b.base + T_fb[:3, 3])
         diameter, flags = None, []
@@ -352,7 +386,7 @@ def write_merge(out: Path, m: MergeOutcome, sides: dict[str, SideMap]) -> None:
     al, it, sba = m.alignment, m.initial, m.sba
     extra: dict = {}
     if sba is not None:
-        pair_ids = list(al.pairs)
+        pair_ids = list(m.pairs)
         extra["semantic_ba"] = {
             "trunk_axis_gap_mm": {"before": {"median": float(np.median(list(sba.gaps_before_mm.values()))),
                                              "max": float(max(sba.gaps_before_mm.values()))},
@@ -362,14 +396,17 @@ def write_merge(out: Path, m: MergeOutcome, sides: dict[str, SideMap]) -> None:
                                                 "before": sba.gaps_before_mm[k], "after": sba.gaps_after_mm[k]}
                                                for k in sorted(sba.gaps_after_mm)]},
             "error_initial": sba.error_initial, "error_final": sba.error_final, "iterations": sba.iterations}
-    write_side_merge(
-        out / "side_merge.json", it.T_front_back, method="semantic_ba" if sba is not None else "initial",
-        residuals={"pairs": [asdict(r) for r in it.residuals], "huber_cost_initial": it.cost_initial,
-                   "huber_cost_final": it.cost_final, "boundary_rms_m": al.boundary_rms_m},
-        overlap={"x_range_m": list(al.overlap_m), "trunks_front": len(sides["front"].trunks),
-                 "trunks_back": len(sides["back"].trunks), "pairs": len(al.pairs)},
-        alignment_log=al.log, **extra)
-    poses = {"front": sides["front"].keyframe_poses, "back": it.T_front_back[None] @ sides["back"].keyframe_poses}
+    residuals: dict = {}
+    if it is not None and al is not None:
+        residuals = {"pairs": [asdict(r) for r in it.residuals], "huber_cost_initial": it.cost_initial,
+                     "huber_cost_final": it.cost_final, "boundary_rms_m": al.boundary_rms_m}
+    overlap = {"trunks_front": len(sides["front"].trunks), "trunks_back": len(sides["back"].trunks),
+               "pairs": len(m.pairs)}
+    if al is not None:
+        overlap["x_range_m"] = list(al.overlap_m)
+    write_side_merge(out / "side_merge.json", m.T_front_back, method=m.method, residuals=residuals,
+                     overlap=overlap, alignment_log=al.log if al is not None else [], seconds=m.seconds, **extra)
+    poses = {"front": sides["front"].keyframe_poses, "back": m.T_front_back[None] @ sides["back"].keyframe_poses}
     if sba is not None:
         poses = {"front": sba.front_poses, "back": sba.back_poses}
     for side, P in poses.items():  # (K, 4, 4) T_map_cam
@@ -433,8 +470,8 @@ def _run(front: Path, back: Path | None, out: Path, cfg: OrchardConfig, progress
             else:
                 write_merge(out, merged, sides)
                 write_trees(out, two_side_trees(merged, sides, cfg), frame="map")
-                log.info("sides merged on %d trunk pairs: %s", len(merged.alignment.pairs),
-                         "; ".join(merged.alignment.log))
+                log.info("sides merged (%s) on %d trunk pairs%s", merged.method, len(merged.pairs),
+                         ": " + "; ".join(merged.alignment.log) if merged.alignment is not None else "")
             timings.add("merge", time.perf_counter() - t0)
     write_timings(out / "timings.json", timings.stages, frames=timings.frames,
                   recording_duration_s=timings.recording_duration_s)

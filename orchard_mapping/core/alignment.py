@@ -44,6 +44,8 @@ __all__ = [
     "alpha_boundary",
     "canonical_frame",
     "cpd_rigid_2d",
+    "icp_merge",
+    "pair_trunks",
 ]
 
 
@@ -373,3 +375,55 @@ def align_sides(front: AlignmentSide, back: AlignmentSide, params: AlignmentPara
         pairs=tuple((int(front.trunk_ids[i]), int(back.trunk_ids[j])) for i, j, _ in pairs),
         pair_gaps_m=tuple(g for _, _, g in pairs), overlap_m=overlap, boundary_rms_m=b_rms,
         front=cf, back=cb, log=log)
+
+
+# --------------------------------------------------------------------------- baseline
+
+def icp_merge(front: AlignmentSide, back: AlignmentSide, params: AlignmentParams, rng: np.random.Generator,
+              max_distance_m: float = 0.30) -> np.ndarray:
+    """The ICP baseline: point-to-plane ICP (Open3D) of the thinned clouds, started from the sides'
+    canonical frames (ground and PCA: the sides facing each other) with the clouds' medians brought
+    together. Returns T_front_back (4, 4). The paper reports that ICP fails here: the two
+    sides see different surfaces of every tree."""
+    import open3d as o3d
+
+    cf = canonical_frame(front.points, front.poses, "front", params, rng)
+    cb = canonical_frame(back.points, back.poses, "back", params, rng)
+    # Generous to ICP: the clouds' medians above the ground brought together along the row and in depth.
+    med = []
+    for side, c in ((front, cf), (back, cb)):
+        P = _voxel(np.asarray(side.points, float), params.voxel_m) @ c.T_canon_odom[:3, :3].T + c.T_canon_odom[:3, 3]
+        med.append(np.median(P[P[:, 1] > params.ground_clearance_m], axis=0))
+    shift = np.eye(4)
+    shift[[0, 2], 3] = (med[0] - med[1])[[0, 2]]
+    T0 = np.linalg.inv(cf.T_canon_odom) @ shift @ cb.T_canon_odom
+
+    def cloud(points: np.ndarray) -> o3d.geometry.PointCloud:
+        pc = o3d.geometry.PointCloud(o3d.utility.Vector3dVector(_voxel(np.asarray(points, float), params.voxel_m)))
+        pc.estimate_normals(o3d.geometry.KDTreeSearchParamHybrid(radius=3 * params.voxel_m, max_nn=30))
+        return pc
+
+    res = o3d.pipelines.registration.registration_icp(
+        cloud(back.points), cloud(front.points), max_distance_m, T0,
+        o3d.pipelines.registration.TransformationEstimationPointToPlane(),
+        o3d.pipelines.registration.ICPConvergenceCriteria(max_iteration=100))
+    return np.asarray(res.transformation)
+
+
+def pair_trunks(front: AlignmentSide, back: AlignmentSide, T_front_back: np.ndarray,
+                radius_m: float) -> tuple[tuple[int, int], ...]:
+    """Trunk pairs (front id, back id) whose axes, at the trunk bases, are mutual nearest within radius_m
+    once the back side is moved by T_front_back (horizontal distance in the front frame, up = mean axis)."""
+    if not len(front.trunk_base) or not len(back.trunk_base):
+        return ()
+    up = front.trunk_axis.mean(axis=0)
+    up /= np.linalg.norm(up)
+    bb = back.trunk_base @ T_front_back[:3, :3].T + T_front_back[:3, 3]
+    d = front.trunk_base[:, None, :] - bb[None]  # (F, B, 3)
+    d = np.linalg.norm(d - (d @ up)[..., None] * up, axis=2)
+    out = []
+    for i in range(len(d)):
+        j = int(np.argmin(d[i]))
+        if d[i, j] < radius_m and int(np.argmin(d[:, j])) == i:
+            out.append((int(front.trunk_ids[i]), int(back.trunk_ids[j])))
+    return tuple(out)

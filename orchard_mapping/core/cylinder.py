@@ -48,6 +48,7 @@ __all__ = [
     "fit_cylinders_shared_radius",
     "point_distance",
     "ransac_cylinder",
+    "refine_cone_axis",
     "view_residuals",
 ]
 
@@ -323,6 +324,38 @@ def _refine(parts: list[tuple[Cylinder, np.ndarray, list[_ViewData]]], intr: Cam
     sol = least_squares(residuals, np.zeros(4 * len(parts) + 1), loss="huber", f_scale=huber_k, method="trf",
                         x_scale=[0.05, 0.05, 0.01, 0.01] * len(parts) + [0.005], max_nfev=100)
     return unpack(sol.x)
+
+
+def refine_cone_axis(points: np.ndarray, cyl: Cylinder, *, threshold_m: float, sigma_m: float = 0.003,
+                     huber_k: float = 1.345) -> tuple[Cylinder, float]:
+    """The axis of a tapered trunk: LM over axis, origin, radius and taper of a cone (radius r + k h at
+    h along the axis from the origin) on the points (N, 3) within threshold_m of `cyl`.
+
+    A cylinder fitted to the visible half of a tapered trunk tilts away from the camera (its near surface
+    recedes as the radius shrinks upwards): by the taper's half-angle, 0.3-0.4 deg on the simulated rows,
+    in opposite directions on the two sides of a row. The cone's radius change shows in the width of the
+    visible surface, so taper and tilt separate. Returns (the cylinder with the cone's axis and its
+    radius at the origin, k in m per m)."""
+    P = np.asarray(points, float)
+    P = P[np.abs(point_distance(P, cyl)) < threshold_m]
+    if len(P) < 20:
+        return cyl, 0.0
+    e1, e2 = _basis(cyl.axis)
+
+    def unpack(x: np.ndarray) -> tuple[np.ndarray, np.ndarray, float, float]:
+        a = cyl.axis + x[0] * e1 + x[1] * e2
+        return a / np.linalg.norm(a), cyl.origin + x[2] * e1 + x[3] * e2, cyl.radius + x[4], x[5]
+
+    def residuals(x: np.ndarray) -> np.ndarray:
+        a, o, r, k = unpack(x)
+        rel = P - o
+        h = rel @ a
+        return (np.linalg.norm(rel - h[:, None] * a, axis=1) - (r + k * h)) / sigma_m
+
+    sol = least_squares(residuals, np.zeros(6), loss="huber", f_scale=huber_k, method="trf",
+                        x_scale=[0.01, 0.01, 0.005, 0.005, 0.005, 0.01], max_nfev=100)
+    a, o, r, k = unpack(sol.x)
+    return Cylinder(a, o, r), float(k)
 
 
 def fit_cylinders_shared_radius(parts: list[tuple[np.ndarray, np.ndarray, list[CylinderView], Cylinder]],

@@ -38,7 +38,7 @@ class MergeParams:
     __pydantic_config__ = {"extra": "forbid"}
 
     # "semantic_ba": initial alignment, initial transform, then semantic bundle adjustment; "initial":
-    # without the bundle adjustment (the baseline); "off": each side on its own.
+    # without the bundle adjustment; "icp": the point-to-plane ICP baseline; "off": each side on its own.
     method: str = "semantic_ba"
     # Sigmas of the constraint residuals: a trunk's whole-length axis is good to ~0.5 deg and its line
     # to a few millimetres; a local ground's normal to ~1 deg and its height to ~1 cm (benchmarks/trunks.py).
@@ -49,8 +49,8 @@ class MergeParams:
     huber_k: float = 1.345  # in sigmas
 
     def __post_init__(self) -> None:
-        if self.method not in ("semantic_ba", "initial", "off"):
-            raise ValueError(f"merge.method must be 'semantic_ba', 'initial' or 'off', got {self.method!r}")
+        if self.method not in ("semantic_ba", "initial", "icp", "off"):
+            raise ValueError(f"merge.method must be 'semantic_ba', 'initial', 'icp' or 'off', got {self.method!r}")
         for name in ("sigma_axis_rad", "sigma_line_m", "sigma_normal_rad", "sigma_plane_m", "huber_k"):
             if not getattr(self, name) > 0:
                 raise ValueError(f"merge.{name} must be > 0, got {getattr(self, name)!r}")

@@ -37,6 +37,9 @@ __all__ = ["SemanticBAParams", "SideShapes", "SemanticBAResult", "TrunkShape", "
 logger = logging.getLogger(__name__)
 
 GAUGE_SIGMA = 1e-6  # rad and m: the first front keyframe is held
+# m, along the axis for a side whose trunk has no local ground: on the 2-tree test row such a trunk's foot was
+# 15 cm too high, and held at the grounded sigma it lifted the whole back side by 6 cm.
+UNGROUNDED_ALONG_SIGMA_M = 0.5
 
 
 @dataclass
@@ -68,6 +71,9 @@ class TrunkShape:
     keyframe: int  # index into that side's poses
     T_cam_trunk: np.ndarray  # (4, 4) trunk frame (origin on the axis at the diameter height, z = axis)
     ground_cam: np.ndarray | None = None  # (4,) plane n . p + d = 0 in that camera frame (n up), or None
+    # The origin's height along the axis came from this side's local ground. Without one it is the lowest
+    # trunk point (weeds may hide the foot): its height is then not a measurement (loose along the axis).
+    grounded: bool = True
 
 
 @dataclass(frozen=True)
@@ -124,9 +130,12 @@ def semantic_bundle_adjust(front: SideShapes, back: SideShapes, params: Semantic
     step = gtsam.noiseModel.Diagonal.Sigmas(np.array([np.radians(params.step_sigma_rot_deg)] * 3
                                                      + [params.step_sigma_trans_m] * 3))
     huber = gtsam.noiseModel.mEstimator.Huber.Create(params.huber_k)
-    trunk_noise = gtsam.noiseModel.Robust.Create(huber, gtsam.noiseModel.Diagonal.Sigmas(np.array(
-        [np.radians(params.trunk_sigma_tilt_deg)] * 2 + [10.0]  # rotation: tilt x, y; heading free
-        + [params.trunk_sigma_across_m] * 2 + [params.trunk_sigma_along_m])))
+    def trunk_noise(along_m: float) -> gtsam.noiseModel.Base:
+        return gtsam.noiseModel.Robust.Create(huber, gtsam.noiseModel.Diagonal.Sigmas(np.array(
+            [np.radians(params.trunk_sigma_tilt_deg)] * 2 + [10.0]  # rotation: tilt x, y; heading free
+            + [params.trunk_sigma_across_m] * 2 + [along_m])))
+
+    grounded_noise, loose_noise = trunk_noise(params.trunk_sigma_along_m), trunk_noise(UNGROUNDED_ALONG_SIGMA_M)
     # OrientedPlane3Factor takes a Gaussian model only: a pair of grounds that disagree by more than 3
     # sigmas at the initial poses (weeds taken for ground on one side) is left out instead.
     plane_noise = gtsam.noiseModel.Diagonal.Sigmas(np.array(
@@ -146,7 +155,8 @@ def semantic_bundle_adjust(front: SideShapes, back: SideShapes, params: Semantic
                 continue
             if not values.exists(T(t.tree)):  # initial: the front side's trunk
                 values.insert(T(t.tree), gtsam.Pose3(front.poses[_kf(front, t.tree)] @ _shape(front, t.tree).T_cam_trunk))
-            graph.add(gtsam.BetweenFactorPose3(sym(t.keyframe), T(t.tree), gtsam.Pose3(t.T_cam_trunk), trunk_noise))
+            graph.add(gtsam.BetweenFactorPose3(sym(t.keyframe), T(t.tree), gtsam.Pose3(t.T_cam_trunk),
+                                               grounded_noise if t.grounded else loose_noise))
     for t in front.trunks:
         other = _shape(back, t.tree) if t.tree in shared else None
         if t.ground_cam is None or other is None or other.ground_cam is None:

@@ -30,7 +30,7 @@ from dataclasses import dataclass, field, replace
 import numpy as np
 
 from orchard_mapping.core.cylinder import (Cylinder, CylinderError, CylinderFit, CylinderView, fit_cylinder,
-                                           point_distance)
+                                           point_distance, refine_cone_axis)
 from orchard_mapping.core.geometry import transform_points
 from orchard_mapping.core.detection import CLASS_TRUNK, Detection
 from orchard_mapping.core.ground import GroundParams, LocalGroundFit, fit_local_ground, ground_neighbourhood
@@ -146,7 +146,7 @@ class TrunkLandmark:
 
     id: int  # 0.. along the side
     axis: np.ndarray  # (3,) unit, up: the whole trunk's axis (coarse fit)
-    base: np.ndarray  # (3,) m: where the axis meets the local ground (or the lowest trunk point's height)
+    base: np.ndarray  # (3,) m: where the axis meets the local ground (else the wide ground, else the lowest trunk point)
     length_m: float  # m, from base to the highest trunk point along the axis
     ground: LocalGroundFit | None
     band: CylinderFit | None  # the cylinder at the diameter height; None when hidden there
@@ -160,6 +160,10 @@ class TrunkLandmark:
     band_points: np.ndarray | None = None  # (N, 3)
     band_normals: np.ndarray | None = None  # (N, 3)
     band_views: list[CylinderView] = field(default_factory=list)
+    # The whole trunk's axis with its taper modelled (a cone: core.cylinder.refine_cone_axis): the cylinder
+    # axis above leans away from the camera by the taper's half-angle; the two-side merge uses this one.
+    merge_axis: np.ndarray | None = None  # (3,) unit, up
+    taper: float = 0.0  # m of radius per m up the axis (negative: thinner upwards)
 
 
 def side_up_direction(poses: np.ndarray) -> np.ndarray:
@@ -357,6 +361,8 @@ def _model_trunk(lm_id: int, obs: list[tuple[TrunkView, Detection]], places: np.
     except CylinderError:
         return None
     axis = coarse.cylinder.axis
+    cone, taper = refine_cone_axis(trunk, coarse.cylinder, threshold_m=2 * params.ransac_threshold_m,
+                                   sigma_m=params.sigma_3d_m, huber_k=params.huber_k)
     on_trunk = np.abs(point_distance(trunk, coarse.cylinder)) < 2 * params.ransac_threshold_m
     h_axis = trunk @ axis
     h_bottom = float(np.percentile(h_axis[on_trunk], 1)) if on_trunk.any() else float(h_axis.min())
@@ -373,6 +379,9 @@ def _model_trunk(lm_id: int, obs: list[tuple[TrunkView, Detection]], places: np.
         height_ground = _wide_ground(points, o_bottom, coarse.cylinder, ground_params, rng)
         if height_ground is not None:
             flags.append("diameter_height_from_wide_ground")
+            # the foot on the wider ground rather than the lowest trunk point seen: grass or weeds may hide
+            # the foot (the 10-tree standard row: one tree's lowest point 20 cm up its trunk)
+            base = height_ground.point
     # Without any ground the diameter height is unknown: no diameter rather than one at a guessed height.
     band_h = np.full(len(trunk), np.nan) if height_ground is None else height_ground.height_of(trunk)
     in_band = (band_h >= h_lo) & (band_h <= h_hi)
@@ -409,4 +418,5 @@ def _model_trunk(lm_id: int, obs: list[tuple[TrunkView, Detection]], places: np.
                          baseline_band=baseline, n_points=len(trunk), observations=observations, flags=flags,
                          band_points=trunk[in_band] if band is not None else None,
                          band_normals=normals[in_band] if band is not None else None,
-                         band_views=band_views if band is not None else [])
+                         band_views=band_views if band is not None else [],
+                         merge_axis=cone.axis * np.sign(cone.axis @ axis), taper=taper)

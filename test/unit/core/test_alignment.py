@@ -8,7 +8,8 @@ import numpy as np
 import pytest
 from scipy.spatial.transform import Rotation
 
-from orchard_mapping.core.alignment import AlignmentParams, AlignmentSide, align_sides, alpha_boundary, cpd_rigid_2d
+from orchard_mapping.core.alignment import (AlignmentParams, AlignmentSide, align_sides, alpha_boundary, cpd_rigid_2d,
+                                            pair_trunks)
 from orchard_mapping.core.geometry import make_transform, rotation_angle_deg
 from orchard_mapping.core.merge import MergeParams, SemanticPair, initial_transform
 from orchard_mapping.errors import AlignmentError
@@ -134,6 +135,19 @@ def test_the_sides_are_aligned_and_their_trunks_paired(seed):
                                   back.trunk_base[jb], gf, gb))
     merged = initial_transform(pairs, MergeParams())
     assert base_error(merged.T_front_back).max() < 0.010  # the merge goal at the trunk bases
+
+
+def test_trunks_are_paired_only_where_the_transform_puts_them_together():
+    rng = np.random.default_rng(4)
+    world, bases, axes = _row(rng)
+    Twf, Twb = _random_T(rng), _random_T(rng)
+    front = _side(world, bases, axes, -2.0, Twf, rng)
+    back = _side(world, bases, axes, 2.0, Twb, rng, trunks=slice(None, None, -1))
+    T_true = np.linalg.inv(Twf) @ Twb
+    assert sorted(pair_trunks(front, back, T_true, 0.15)) == [(i, i) for i in range(len(bases))]
+    shifted = T_true.copy()
+    shifted[:3, 3] += Twf[:3, :3].T @ [0.75, 0.0, 0.0]  # half a tree spacing along the row: no pair
+    assert pair_trunks(front, back, shifted, 0.15) == ()
 
 
 def test_too_few_shared_trunks_is_a_typed_refusal():

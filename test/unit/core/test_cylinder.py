@@ -149,3 +149,27 @@ def test_mask_edges_that_stray_from_the_trunk_are_moved_to_its_depth_edge(seed, 
     assert np.sign(raw.cylinder.radius - cyl.radius) == np.sign(grow_px)
     assert abs(raw.cylinder.radius - cyl.radius) > 0.0015
     assert abs(snapped.cylinder.radius - cyl.radius) < 0.0008
+
+
+@pytest.mark.parametrize("seed", [0, 1, 2])
+def test_a_tapered_trunk_seen_from_one_side_keeps_its_axis(seed):
+    """The visible half of a trunk 70 mm thick at the bottom and 58 mm at 0.7 m (the simulator's taper):
+    a cylinder fit tilts away from the camera by about the taper's half-angle (0.5 deg), which the two sides
+    of a row would double into a merge error; the cone fit keeps the axis."""
+    from orchard_mapping.core.cylinder import refine_cone_axis
+
+    rng = np.random.default_rng(seed)
+    axis = np.array([0.0, -1.0, 0.0])  # optical frame: up is -y; the camera looks along +z at the trunk
+    h = rng.uniform(0.0, 0.7, 8000)
+    ph = rng.uniform(-np.pi / 2, np.pi / 2, 8000)  # the half facing the camera (-z side)
+    r = 0.035 - (0.006 / 0.7) * h
+    origin = np.array([0.0, 0.5, 1.5])
+    P = origin + h[:, None] * axis + r[:, None] * np.stack([np.sin(ph), np.zeros_like(ph), -np.cos(ph)], 1)
+    P += rng.normal(0, 0.001, P.shape)
+    N = np.stack([np.sin(ph), np.zeros_like(ph), -np.cos(ph)], 1)
+    cyl = fit_cylinder(P, N, [], INTR, np.random.default_rng(seed), up=UP, use_2d=False)
+    tilt = np.degrees(np.arccos(min(1.0, abs(cyl.cylinder.axis @ axis))))
+    cone, k = refine_cone_axis(P, cyl.cylinder, threshold_m=0.016)
+    assert tilt > 0.3
+    assert np.degrees(np.arccos(min(1.0, abs(cone.axis @ axis)))) < 0.1
+    assert k == pytest.approx(-0.006 / 0.7, abs=0.002)
