@@ -12,7 +12,7 @@ from pathlib import Path
 import numpy as np
 import yaml
 
-from orchard_mapping.core.geometry import transform_points
+from orchard_mapping.core.geometry import transform_points, umeyama
 from orchard_mapping.errors import AlignmentError, ResultFormatError
 from orchard_mapping.eval.ground_truth import GroundTruth, load_ground_truth
 from orchard_mapping.eval.metrics import (
@@ -66,6 +66,17 @@ def _rgb_only(result_dir: Path) -> bool:
     return mode == "rgb"
 
 
+def _rigid_rmse_mm(est: np.ndarray, true: np.ndarray) -> float | None:
+    """mm, RMS of |R est + t - true| after the best rigid alignment (Kabsch); None below 3 points."""
+    if len(est) < 3:
+        return None
+    try:
+        S = umeyama(est, true)
+    except AlignmentError:  # the estimates coincide
+        return None
+    return float(1000 * np.sqrt(np.mean(np.sum((est @ (S.s * S.R).T + S.t - true) ** 2, axis=1))))
+
+
 def _mean_or_none(v: np.ndarray) -> float | None:
     return float(v.mean()) if v.size else None
 
@@ -102,6 +113,7 @@ def _trees_part(
         mean_distance_m=_mean_or_none(m.distance_m),
         missed_ids=tuple(gt.trees[i].id for i in m.missed.tolist()),
         false_ids=tuple(trees[j].id for j in m.false.tolist()),
+        position_rmse_mm=_rigid_rmse_mm(est_xyz[m.est_index], true_xyz[m.true_index]),
     )
 
     def diffs(true_attr: str, est_attr: str) -> tuple[np.ndarray, np.ndarray]:

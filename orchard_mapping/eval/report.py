@@ -55,6 +55,9 @@ class MatchingSummary:
     mean_distance_m: float | None  # m, over matched pairs
     missed_ids: tuple[int, ...]  # true tree ids
     false_ids: tuple[int, ...]  # result tree ids
+    # mm: RMS distance of the matched trees after one rigid alignment of all of them to the truth (the map's
+    # shape, whatever its placement); None with fewer than 3 matched trees
+    position_rmse_mm: float | None = None
 
 
 @dataclass(frozen=True)
@@ -172,6 +175,8 @@ class EvaluationReport:
             note = f"3D distance <= {self.match_radius_m:g} m in map; mean {_fmt(m.mean_distance_m, 3)} m"
             rows += [
                 ("trees matched", f"{m.matched}/{m.true_trees}", "trees", note),
+                ("tree position RMSE", _fmt(m.position_rmse_mm, 1), "mm",
+                 "matched trees after one rigid alignment to the truth"),
                 ("trees missed", str(m.missed), "trees", f"true ids {list(m.missed_ids)}" if m.missed else ""),
                 ("false trees", str(m.false), "trees", f"result ids {list(m.false_ids)}" if m.false else ""),
             ]

@@ -189,6 +189,24 @@ def test_missing_extra_and_far_trees(truth_path: Path, result_dir: Path) -> None
     assert max(pr.distance_m for pr in rep.pairs) == pytest.approx(0.35)
 
 
+def test_tree_position_rmse_ignores_the_placement_but_not_the_shape(truth_path: Path, result_dir: Path) -> None:
+    original = read_trees(result_dir)
+    assert evaluate_result(truth_path, result_dir).matching.position_rmse_mm == pytest.approx(0.0, abs=1e-6)
+    R = Rotation.from_rotvec([0.0, 0.0, 0.05]).as_matrix()  # the whole map turned and shifted: same shape
+    moved = [dataclasses.replace(t, position=tuple(R @ np.array(t.position) + [0.05, -0.03, 0.02])) for t in original]
+    write_trees(result_dir, moved)
+    rep = evaluate_result(truth_path, result_dir)
+    assert rep.matching.matched == 3 and rep.matching.position_rmse_mm == pytest.approx(0.0, abs=1e-6)
+    assert rep.matching.mean_distance_m > 0.03
+    bent = [*original[:2], dataclasses.replace(original[2], position=tuple(np.array(original[2].position)
+                                                                           + [0.0, 0.0, 0.06]))]
+    write_trees(result_dir, bent)  # one tree 6 cm up: the shape changes
+    rmse = evaluate_result(truth_path, result_dir).matching.position_rmse_mm
+    assert 10.0 < rmse < 60.0
+    write_trees(result_dir, original[:2])
+    assert evaluate_result(truth_path, result_dir).matching.position_rmse_mm is None  # two trees: no shape
+
+
 def test_merge_errors(truth_path: Path, result_dir: Path, truth: dict[str, Any]) -> None:
     T_true = np.asarray(truth["T_front_back"])
     path = result_dir / "side_merge.json"
