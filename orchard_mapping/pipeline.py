@@ -283,7 +283,7 @@ def merge_sides(front: SideMap, back: SideMap, cfg: OrchardConfig) -> MergeOutco
         t = sm.trunks
         return AlignmentSide(sm.cloud_points, sm.keyframe_poses, np.array([x.base for x in t]).reshape(-1, 3),
                              np.array([_merge_axis(x) for x in t]).reshape(-1, 3), np.array([x.id for x in t], int),
-                             sm.scale_free)
+                             sm.scale_free, np.array([np.nan if x.diameter_m is None else x.diameter_m for x in t]))
 
     rng = np.random.default_rng(cfg.seed)
     t0 = time.perf_counter()

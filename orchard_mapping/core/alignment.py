@@ -68,6 +68,11 @@ class AlignmentParams:
     trunk_height_m: float = 0.30  # m above the ground: where the trunk axes are compared
     pair_radius_m: float = 0.15  # m, trunk axes closer than this after alignment are one tree
     min_pairs: int = 2  # trunks seen from both sides needed for a merge
+    shift_candidates: int = 4  # best shifts along the row carried through CPD and the top view
+    # mm, median axis gap + median diameter difference of the paired trunks above which the pairs are taken
+    # for different trees and the merge refused. The right shift scored 3.0 (9-tree partial_overlap), 5.7
+    # (10-tree standard) and 9.8 mm (10-tree slope_weeds); shifts a tree or more off 21-110 mm.
+    max_disagreement_mm: float = 16.0
 
 
 @dataclass(frozen=True)
@@ -80,6 +85,11 @@ class AlignmentSide:
     trunk_axis: np.ndarray  # (T, 3) unit, up
     trunk_ids: np.ndarray  # (T,) int, the trunk landmarks' ids
     scale_free: bool = False  # True for a colour-only side (up to scale)
+    trunk_diameter: np.ndarray | None = None  # (T,) m, NaN where not measured (None: none measured)
+
+    def __post_init__(self) -> None:
+        if self.trunk_diameter is None:
+            object.__setattr__(self, "trunk_diameter", np.full(len(self.trunk_ids), np.nan))
 
 
 @dataclass(frozen=True)
@@ -254,13 +264,6 @@ def cpd_rigid_2d(fixed: np.ndarray, moving: np.ndarray, *, with_scale: bool, w: 
     return R, t, s, sigma2
 
 
-def _eq_dist(fixed: np.ndarray, moving: np.ndarray, cap_m: float) -> float:
-    """Eq. dist, truncated at cap_m per point (parts of the row only one side covers) and averaged both ways."""
-    d1, _ = cKDTree(fixed).query(moving)
-    d2, _ = cKDTree(moving).query(fixed)
-    return float(np.mean(np.minimum(d1, cap_m) ** 2) + np.mean(np.minimum(d2, cap_m) ** 2))
-
-
 # --------------------------------------------------------------------------- trunks
 
 def _trunk_points(side: AlignmentSide, T: np.ndarray, height: float) -> np.ndarray:
@@ -299,34 +302,68 @@ def _pairs(pf: np.ndarray, pb: np.ndarray, radius: float) -> list[tuple[int, int
     return out
 
 
-# --------------------------------------------------------------------------- the whole step
-
-def align_sides(front: AlignmentSide, back: AlignmentSide, params: AlignmentParams,
-                rng: np.random.Generator) -> SideAlignment:
-    """Initial similarity odom_front <- odom_back and trunk pairs (module docstring)."""
-    log: list[str] = []
-    cf = canonical_frame(front.points, front.poses, "front", params, rng)
-    cb = canonical_frame(back.points, back.poses, "back", params, rng)
-    Pf = np.asarray(front.points, float) @ cf.T_canon_odom[:3, :3].T + cf.T_canon_odom[:3, 3]
-    Pb = np.asarray(back.points, float) @ cb.T_canon_odom[:3, :3].T + cb.T_canon_odom[:3, 3]
-    tf = _trunk_points(front, cf.T_canon_odom, params.trunk_height_m)
-    tb = _trunk_points(back, cb.T_canon_odom, params.trunk_height_m)
-    zf = float(np.median(tf[:, 2])) if len(tf) else float(np.median(Pf[:, 2]))
-    zb = float(np.median(tb[:, 2])) if len(tb) else float(np.median(Pb[:, 2]))
-    Bf = _front_view_boundary(Pf, zf, params, rng)
-    Bb = _front_view_boundary(Pb, zb, params, rng)
-    if len(Bf) < 20 or len(Bb) < 20:
-        raise AlignmentError(f"too little above the ground to align the sides' front views "
-                             f"({len(Bf)} front, {len(Bb)} back boundary points)")
-    # X shift on a grid (eq. dist), then CPD from the best shift.
+def _shift_costs(Bf: np.ndarray, Bb: np.ndarray, params: AlignmentParams) -> tuple[np.ndarray, np.ndarray]:
+    """(shifts (S,), cost (S,)): eq. dist between the front-view boundaries over the stretch both cover
+    at each shift along the row (truncated at 0.3 m per point); shifts leaving less than a third of the
+    shorter side in common cost infinity. Counting the common stretch only, a shift is not preferred
+    for overlapping more (the sides may cover different stretches of the row)."""
     lo = Bf[:, 0].min() - Bb[:, 0].max()
     hi = Bf[:, 0].max() - Bb[:, 0].min()
     shifts = np.arange(lo, hi + params.shift_step_m, params.shift_step_m)
-    cost = [_eq_dist(Bf, Bb + [dx, 0.0], cap_m=0.3) for dx in shifts]
-    dx0 = float(shifts[int(np.argmin(cost))])
-    log.append(f"front-view X shift {dx0:+.2f} m from {len(shifts)} tried (eq. dist {min(cost):.4f} m^2)")
-    scale_free = front.scale_free or back.scale_free
-    R2, t2, s, sigma2 = cpd_rigid_2d(Bf, Bb + [dx0, 0.0], with_scale=scale_free, w=params.cpd_outlier_weight,
+    span = min(np.ptp(Bf[:, 0]), np.ptp(Bb[:, 0]))
+    tree_f = cKDTree(Bf)
+    cost = np.full(len(shifts), np.inf)
+    for k, dx in enumerate(shifts):
+        b = Bb + [dx, 0.0]
+        x0, x1 = max(Bf[:, 0].min(), b[:, 0].min()), min(Bf[:, 0].max(), b[:, 0].max())
+        if x1 - x0 < span / 3:
+            continue
+        fin = Bf[(Bf[:, 0] >= x0) & (Bf[:, 0] <= x1)]
+        bin_ = b[(b[:, 0] >= x0) & (b[:, 0] <= x1)]
+        if len(fin) < 10 or len(bin_) < 10:
+            continue
+        d1, _ = tree_f.query(bin_)
+        d2, _ = cKDTree(bin_).query(fin)
+        cost[k] = float(np.mean(np.minimum(d1, 0.3) ** 2) + np.mean(np.minimum(d2, 0.3) ** 2))
+    return shifts, cost
+
+
+def _local_minima(x: np.ndarray, y: np.ndarray, k: int, separation: float) -> list[float]:
+    """Up to k positions of the lowest finite local minima of y(x), at least `separation` apart."""
+    order = [i for i in np.argsort(y) if np.isfinite(y[i])]
+    out: list[float] = []
+    for i in order:
+        if all(abs(x[i] - o) >= separation for o in out):
+            out.append(float(x[i]))
+        if len(out) == k:
+            break
+    return out
+
+
+@dataclass(frozen=True)
+class _Candidate:
+    S: np.ndarray  # (4, 4) front canonical <- back canonical
+    pairs: list[tuple[int, int, float]]
+    scale: float
+    boundary_rms_m: float
+    tb_al: np.ndarray  # (T_b, 3) back trunk points moved by S
+    score_mm: float  # median gap of the paired axes + median diameter difference (lower is better)
+    log: list[str]
+
+
+def _from_shift(dx0: float, Bf: np.ndarray, Bb: np.ndarray, tf: np.ndarray, tb: np.ndarray, front: AlignmentSide,
+                back: AlignmentSide, scale_free: bool, params: AlignmentParams) -> _Candidate:
+    """CPD of the front views from shift dx0, then the top view from the trunks paired along the row."""
+    log: list[str] = []
+    # CPD on the stretch both cover at this shift: given all of both boundaries it slides towards the
+    # largest overlap, whatever the shift it started from (partial_overlap row: every start ended 1.85 m off).
+    b0 = Bb + [dx0, 0.0]
+    x0, x1 = max(Bf[:, 0].min(), b0[:, 0].min()), min(Bf[:, 0].max(), b0[:, 0].max())
+    fin = Bf[(Bf[:, 0] >= x0) & (Bf[:, 0] <= x1)]
+    bin_ = b0[(b0[:, 0] >= x0) & (b0[:, 0] <= x1)]
+    if len(fin) < 10 or len(bin_) < 10:
+        raise AlignmentError(f"the front views share too little at a shift of {dx0:+.2f} m along the row")
+    R2, t2, s, sigma2 = cpd_rigid_2d(fin, bin_, with_scale=scale_free, w=params.cpd_outlier_weight,
                                      iterations=params.cpd_iterations)
     t2 = t2 + s * R2 @ np.array([dx0, 0.0])
     # Lift the 2D similarity in (X, Y) to 3D: rotation about Z.
@@ -367,6 +404,60 @@ def align_sides(front: AlignmentSide, back: AlignmentSide, params: AlignmentPara
         raise AlignmentError(
             f"only {len(pairs)} trunk pair(s) agree after alignment (of {len(near)} matched along the row): "
             f"at least {params.min_pairs} are needed to merge the sides")
+    gaps_mm = 1000 * np.array([g for _, _, g in pairs])
+    dd = [abs(front.trunk_diameter[i] - back.trunk_diameter[j]) * 1000 for i, j, _ in pairs
+          if np.isfinite(front.trunk_diameter[i]) and np.isfinite(back.trunk_diameter[j])]
+    score = float(np.median(gaps_mm)) + (float(np.median(dd)) if dd else 0.0)
+    return _Candidate(S, pairs, float(s), b_rms, tb_al, score, log)
+
+
+# --------------------------------------------------------------------------- the whole step
+
+def align_sides(front: AlignmentSide, back: AlignmentSide, params: AlignmentParams,
+                rng: np.random.Generator) -> SideAlignment:
+    """Initial similarity odom_front <- odom_back and trunk pairs (module docstring)."""
+    log: list[str] = []
+    cf = canonical_frame(front.points, front.poses, "front", params, rng)
+    cb = canonical_frame(back.points, back.poses, "back", params, rng)
+    Pf = np.asarray(front.points, float) @ cf.T_canon_odom[:3, :3].T + cf.T_canon_odom[:3, 3]
+    Pb = np.asarray(back.points, float) @ cb.T_canon_odom[:3, :3].T + cb.T_canon_odom[:3, 3]
+    tf = _trunk_points(front, cf.T_canon_odom, params.trunk_height_m)
+    tb = _trunk_points(back, cb.T_canon_odom, params.trunk_height_m)
+    zf = float(np.median(tf[:, 2])) if len(tf) else float(np.median(Pf[:, 2]))
+    zb = float(np.median(tb[:, 2])) if len(tb) else float(np.median(Pb[:, 2]))
+    Bf = _front_view_boundary(Pf, zf, params, rng)
+    Bb = _front_view_boundary(Pb, zb, params, rng)
+    if len(Bf) < 20 or len(Bb) < 20:
+        raise AlignmentError(f"too little above the ground to align the sides' front views "
+                             f"({len(Bf)} front, {len(Bb)} back boundary points)")
+    # X shift: a row repeats itself every tree, so the front views alone may fit best one tree off (a
+    # 9-tree partial_overlap row: 1.85 m off, silently). The best few shifts of eq. dist are each carried
+    # through CPD and the top view; the one whose paired trunks agree best (gap of their axes, and their
+    # diameters, which differ from tree to tree by centimetres) wins.
+    shifts, cost = _shift_costs(Bf, Bb, params)
+    scale_free = front.scale_free or back.scale_free
+    tried: list[tuple[float, float, _Candidate]] = []
+    failures = []
+    for dx0 in _local_minima(shifts, cost, params.shift_candidates, params.pair_radius_m * 4):
+        try:
+            cand = _from_shift(dx0, Bf, Bb, tf, tb, front, back, scale_free, params)
+        except AlignmentError as err:
+            failures.append(str(err))
+            continue
+        tried.append((cand.score_mm, dx0, cand))
+    if not tried:
+        raise AlignmentError(failures[0] if failures else "no shift along the row aligns the sides' front views")
+    tried.sort(key=lambda x: x[0])
+    _, dx0, best = tried[0]
+    if best.score_mm > params.max_disagreement_mm:
+        raise AlignmentError(
+            f"the trunks the sides seem to share do not agree (best shift {dx0:+.2f} m along the row: median "
+            f"axis gap + diameter difference {best.score_mm:.1f} mm > {params.max_disagreement_mm:g} mm): "
+            "they are probably different trees (the sides cover different stretches of the row)")
+    log.append(f"front-view X shift {dx0:+.2f} m, the best of {len(tried)} candidate(s) by trunk agreement "
+               + ", ".join(f"{d:+.2f} m: {sc:.1f} mm" for sc, d, _ in tried[:4]))
+    log += best.log
+    S, pairs, s, b_rms, tb_al = best.S, best.pairs, best.scale, best.boundary_rms_m, best.tb_al
     T = np.linalg.inv(cf.T_canon_odom) @ S @ cb.T_canon_odom
     xs_f, xs_b = tf[:, 0], tb_al[:, 0]
     overlap = (float(max(xs_f.min(), xs_b.min())), float(min(xs_f.max(), xs_b.max())))
