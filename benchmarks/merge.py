@@ -117,7 +117,7 @@ def main(argv: list[str] | None = None) -> int:
                     f"{_f(r['gap_median_mm'], 1)}/{_f(r['gap_max_mm'], 1)}", _f(r["rotation_error_deg"], 3),
                     _f(r["translation_error_mm"], 1), f"{r['trees_matched']}/{r['trees']}",
                     _f(r["tree_distance_mean_mm"], 1), _f(r["tree_position_rmse_mm"], 1), _f(r["diameter_mae_mm"]))
-    Console().print(tab)
+    Console(width=200).print(tab)
     if args.json:
         args.json.parent.mkdir(parents=True, exist_ok=True)
         args.json.write_text(json.dumps(rows, indent=1))
