@@ -333,10 +333,12 @@ def two_side_trees(m: MergeOutcome, sides: dict[str, SideMap], cfg: OrchardConfi
         paired["front"].add(i)
         paired["back"].add(j)
         if m.sba is not None and m.shapes is not None:
-            # The shared trunk after the semantic BA, down its axis to the ground: each side's base (where
-            # its axis meets its local ground) placed by that side's adjusted camera; a side without a
-            # local ground has only its lowest trunk point (weeds may hide the foot: 15 cm too high on
-            # the 2-tree test row), so the sides with a ground decide, else the lower base.
+            # The shared trunk after the semantic BA, down its axis to the ground: each side's base placed
+            # by that side's adjusted camera. A local ground (within 0.5 m) is the best evidence of the
+            # foot, the wide ground (1 m, rougher: on slope_weeds a tree with a local ground on one side
+            # and a wide one on the other came out 7 cm high from their mean) the next; a side with
+            # neither has only its lowest trunk point (weeds may hide the foot: 15 cm too high on the
+            # 2-tree test row). The best kind present decides; with neither, the lower base.
             Tt = m.sba.trunks_map[k]
             z = Tt[:3, 2]
             heights = []
@@ -344,10 +346,11 @@ def two_side_trees(m: MergeOutcome, sides: dict[str, SideMap], cfg: OrchardConfi
                 sh = next(x for x in shapes.trunks if x.tree == k)
                 Ts = poses[sh.keyframe] @ sh.T_cam_trunk
                 base_map = Ts[:3, 3] - tp.diameter_height_m * Ts[:3, 2]
-                on_ground = lm.ground is not None or "diameter_height_from_wide_ground" in lm.flags
-                heights.append((on_ground, float((base_map - Tt[:3, 3]) @ z)))
-            grounded = [hh for g, hh in heights if g]
-            pos = Tt[:3, 3] + (float(np.mean(grounded)) if grounded else min(hh for _, hh in heights)) * z
+                kind = 2 if lm.ground is not None else 1 if "diameter_height_from_wide_ground" in lm.flags else 0
+                heights.append((kind, float((base_map - Tt[:3, 3]) @ z)))
+            best = max(k for k, _ in heights)
+            chosen = [hh for k, hh in heights if k == best]
+            pos = Tt[:3, 3] + (float(np.mean(chosen)) if best else min(chosen)) * z
         else:
             pos = 0.5 * (f.base + T_fb[:3, :3] @ b.base + T_fb[:3, 3])
         diameter, flags = None, []
