@@ -287,11 +287,12 @@ def merge_sides(front: SideMap, back: SideMap, cfg: OrchardConfig) -> MergeOutco
 
     rng = np.random.default_rng(cfg.seed)
     t0 = time.perf_counter()
+    fa, ba = side_input(front), side_input(back)
     if cfg.merge.method == "icp":
-        T = icp_merge(side_input(front), side_input(back), cfg.alignment, rng)
-        pairs_icp = pair_trunks(side_input(front), side_input(back), T, cfg.alignment.pair_radius_m)
+        T = icp_merge(fa, ba, cfg.alignment, rng)
+        pairs_icp = pair_trunks(fa, ba, T, cfg.alignment.pair_radius_m)
         return MergeOutcome("icp", T, pairs_icp, None, None, None, None, {"icp": time.perf_counter() - t0})
-    al = align_sides(side_input(front), side_input(back), cfg.alignment, rng)
+    al = align_sides(fa, ba, cfg.alignment, rng)
     seconds = {"alignment": time.perf_counter() - t0}
     by_f = {t.id: t for t in front.trunks}
     by_b = {t.id: t for t in back.trunks}
@@ -343,7 +344,7 @@ def two_side_trees(m: MergeOutcome, sides: dict[str, SideMap], cfg: OrchardConfi
             z = Tt[:3, 2]
             heights = []
             for shapes, poses, lm in ((m.shapes[0], m.sba.front_poses, f), (m.shapes[1], m.sba.back_poses, b)):
-                sh = next(x for x in shapes.trunks if x.tree == k)
+                sh = shapes.trunk(k)
                 Ts = poses[sh.keyframe] @ sh.T_cam_trunk
                 base_map = Ts[:3, 3] - tp.diameter_height_m * Ts[:3, 2]
                 kind = 2 if lm.ground is not None else 1 if "diameter_height_from_wide_ground" in lm.flags else 0

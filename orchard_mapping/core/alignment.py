@@ -289,17 +289,20 @@ def _rigid_xz(src: np.ndarray, dst: np.ndarray) -> np.ndarray:
     return G
 
 
-def _pairs(pf: np.ndarray, pb: np.ndarray, radius: float) -> list[tuple[int, int, float]]:
-    """Mutual nearest pairs of trunk points in the (X, Z) plane within radius: (i front, j back, gap)."""
-    if not len(pf) or not len(pb):
-        return []
-    d = np.linalg.norm(pf[:, None, [0, 2]] - pb[None, :, [0, 2]], axis=2)  # (F, B)
+def _mutual_nearest(d: np.ndarray, radius: float) -> list[tuple[int, int, float]]:
+    """(i, j, d_ij) for every i whose nearest j (in the distance matrix d (F, B)) has i as its nearest,
+    closer than radius."""
     out = []
-    for i in range(len(pf)):
+    for i in range(d.shape[0] if d.shape[1] else 0):
         j = int(np.argmin(d[i]))
         if d[i, j] < radius and int(np.argmin(d[:, j])) == i:
             out.append((i, j, float(d[i, j])))
     return out
+
+
+def _pairs(pf: np.ndarray, pb: np.ndarray, radius: float) -> list[tuple[int, int, float]]:
+    """Mutual nearest pairs of trunk points in the (X, Z) plane within radius: (i front, j back, gap)."""
+    return _mutual_nearest(np.linalg.norm(pf[:, None, [0, 2]] - pb[None, :, [0, 2]], axis=2), radius)  # (F, B)
 
 
 def _shift_costs(Bf: np.ndarray, Bb: np.ndarray, params: AlignmentParams) -> tuple[np.ndarray, np.ndarray]:
@@ -512,9 +515,4 @@ def pair_trunks(front: AlignmentSide, back: AlignmentSide, T_front_back: np.ndar
     bb = back.trunk_base @ T_front_back[:3, :3].T + T_front_back[:3, 3]
     d = front.trunk_base[:, None, :] - bb[None]  # (F, B, 3)
     d = np.linalg.norm(d - (d @ up)[..., None] * up, axis=2)
-    out = []
-    for i in range(len(d)):
-        j = int(np.argmin(d[i]))
-        if d[i, j] < radius_m and int(np.argmin(d[:, j])) == i:
-            out.append((int(front.trunk_ids[i]), int(back.trunk_ids[j])))
-    return tuple(out)
+    return tuple((int(front.trunk_ids[i]), int(back.trunk_ids[j])) for i, j, _ in _mutual_nearest(d, radius_m))

@@ -81,6 +81,10 @@ class SideShapes:
     poses: np.ndarray  # (K, 4, 4) T_map_cam, initial (the back side already moved by the initial transform)
     trunks: list[TrunkShape]
 
+    def trunk(self, tree: int) -> TrunkShape:
+        """This side's view of `tree`."""
+        return next(t for t in self.trunks if t.tree == tree)
+
 
 @dataclass(frozen=True)
 class SemanticBAResult:
@@ -149,22 +153,22 @@ def semantic_bundle_adjust(front: SideShapes, back: SideShapes, params: Semantic
     graph.add(gtsam.PriorFactorPose3(F(0), gtsam.Pose3(front.poses[0]),
                                      gtsam.noiseModel.Isotropic.Sigma(6, GAUGE_SIGMA)))
     grounds: set[int] = set()
+    front_map = {t.tree: front.poses[t.keyframe] @ t.T_cam_trunk for t in front.trunks if t.tree in shared}
+    for tree, M in front_map.items():  # initial: the front side's trunk
+        values.insert(T(tree), gtsam.Pose3(M))
     for sym, side in ((F, front), (B, back)):
         for t in side.trunks:
             if t.tree not in shared:
                 continue
-            if not values.exists(T(t.tree)):  # initial: the front side's trunk
-                values.insert(T(t.tree), gtsam.Pose3(front.poses[_kf(front, t.tree)] @ _shape(front, t.tree).T_cam_trunk))
             graph.add(gtsam.BetweenFactorPose3(sym(t.keyframe), T(t.tree), gtsam.Pose3(t.T_cam_trunk),
                                                grounded_noise if t.grounded else loose_noise))
     for t in front.trunks:
-        other = _shape(back, t.tree) if t.tree in shared else None
+        other = back.trunk(t.tree) if t.tree in shared else None
         if t.ground_cam is None or other is None or other.ground_cam is None:
             continue
         n_f, d_f = _plane_in_map(t.ground_cam, front.poses[t.keyframe])
         n_b, d_b = _plane_in_map(other.ground_cam, back.poses[other.keyframe])
-        at = _shape(front, t.tree)
-        x = (front.poses[at.keyframe] @ at.T_cam_trunk)[:3, 3]  # the trunk: where the two planes are compared
+        x = front_map[t.tree][:3, 3]  # the trunk: where the two planes are compared
         if (np.degrees(np.arccos(np.clip(n_f @ n_b, -1, 1))) > 3 * params.ground_sigma_normal_deg
                 or abs((n_b @ x + d_b) - (n_f @ x + d_f)) > 3 * params.ground_sigma_offset_m):
             continue
@@ -196,10 +200,3 @@ def _plane_in_map(plane_cam: np.ndarray, T_map_cam: np.ndarray) -> tuple[np.ndar
     n = R @ plane_cam[:3]
     return n, float(plane_cam[3] - n @ t)
 
-
-def _shape(side: SideShapes, tree: int) -> TrunkShape:
-    return next(t for t in side.trunks if t.tree == tree)
-
-
-def _kf(side: SideShapes, tree: int) -> int:
-    return _shape(side, tree).keyframe
