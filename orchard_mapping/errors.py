@@ -6,6 +6,8 @@ only the CLI maps them to messages and exit codes.
 
 from __future__ import annotations
 
+from pathlib import Path
+
 
 class OrchardMappingError(Exception):
     """Base of every error this package raises on purpose."""
@@ -59,3 +61,12 @@ class ResultFormatError(OrchardMappingError):
 
 class AlignmentError(OrchardMappingError):
     """Two reconstructions (or a trajectory and its reference) cannot be aligned."""
+
+
+class MergeRefusedError(AlignmentError):
+    """`orchard-map run` could not merge the two sides. Each side's own results (trajectories, clouds,
+    trunks, grounds) were written to `out`; nothing of the merge was (no side_merge.json, no trees in map)."""
+
+    def __init__(self, message: str, out: Path | None = None):
+        super().__init__(message)
+        self.out = out

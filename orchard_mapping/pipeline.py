@@ -25,15 +25,18 @@ from orchard_mapping.core.alignment import AlignmentSide, SideAlignment, align_s
 from orchard_mapping.core.bundle_adjustment import BAResult, bundle_adjust, optimise_pose_graph
 from orchard_mapping.core.cylinder import CylinderError, fit_cylinders_shared_radius
 from orchard_mapping.core.fusion import FusionResult, fuse_side
-from orchard_mapping.core.merge import InitialTransform, SemanticPair, initial_transform
+from orchard_mapping.core.merge import HeightPrior, InitialTransform, SemanticPair, initial_transform
 from orchard_mapping.core.geometry import matrix_to_quat
 from orchard_mapping.core.odometry import RGBDFrontEnd
-from orchard_mapping.core.semantic_ba import SemanticBAResult, SideShapes, TrunkShape, semantic_bundle_adjust, trunk_frame
+from orchard_mapping.core.semantic_ba import (SemanticBAResult, SideShapes, TrunkShape, move_with_keyframes,
+                                             semantic_bundle_adjust, trunk_frame)
 from orchard_mapping.core.sidemap import FrontEndResult, LoopClosure, SideMap
-from orchard_mapping.core.trunks import TrunkLandmark, TrunkView, build_trunk_landmarks
+from orchard_mapping.core.cylinder import Cylinder
+from orchard_mapping.core.trunks import TrunkLandmark, TrunkView, build_trunk_landmarks, ground_around_trunk
 from orchard_mapping.core.types import RGBDFrame, StampedTrajectory
-from orchard_mapping.errors import AlignmentError, BagFormatError
+from orchard_mapping.errors import AlignmentError, BagError, BagFormatError, MergeRefusedError
 from orchard_mapping.io.bags import RGBDSequence, read_rgbd
+from orchard_mapping.io.figures import RowView, write_row_png
 from orchard_mapping.io.landmarks import GROUNDS_JSON, TRUNKS_JSON, write_grounds, write_trunks
 from orchard_mapping.io.results import (ResultTree, atomic_write_text, write_side_merge, write_timings, write_trees,
                                        write_tum)
@@ -54,11 +57,17 @@ class Timings:
         self.stages[stage] = self.stages.get(stage, 0.0) + seconds
 
 
+# What a merge writes into the result folder (docs/results.md).
+MERGED_PLY, ROW_PNG = "merged.ply", "row.png"
+MERGE_OUTPUTS = ("side_merge.json", "trees.json", "trees.csv", "trajectory_*_map.tum", MERGED_PLY, ROW_PNG)
+
+
 @dataclass(frozen=True)
 class RunResult:
     out_dir: Path
     sides: dict[str, SideMap]
     timings: Timings
+    merge_refused: str | None = None  # why the sides were not merged (run raises MergeRefusedError)
 
 
 def open_sides(front: Path, back: Path | None, cfg: OrchardConfig) -> dict[str, RGBDSequence]:
@@ -66,7 +75,16 @@ def open_sides(front: Path, back: Path | None, cfg: OrchardConfig) -> dict[str, 
     inp = cfg.input
     kw = dict(mode=inp.mode, max_pair_dt_s=inp.max_pair_dt_s, depth_min_m=inp.depth_min_m, depth_max_m=inp.depth_max_m)
     if back is not None:
-        return {"front": read_rgbd(front, inp.topics, **kw), "back": read_rgbd(back, inp.topics, **kw)}
+        if Path(front).resolve() == Path(back).resolve():
+            raise BagError("the front and the back bag are the same file: a merge needs one recording of "
+                                 "each side of the row", bag=str(back))
+        seqs = {"front": read_rgbd(front, inp.topics, **kw), "back": read_rgbd(back, inp.topics, **kw)}
+        if np.array_equal(seqs["front"].stamps, seqs["back"].stamps):
+            # a copy of one recording: merged with itself, a side would be mirrored onto the other
+            raise BagError(f"the front and the back bag hold the same recording (the same "
+                                 f"{len(seqs['front'].stamps)} frame stamps as {front}): a merge needs one "
+                                 "recording of each side of the row", bag=str(back))
+        return seqs
     seq = read_rgbd(front, inp.topics, **kw)
     labels = set(seq.sides) - {""}
     if not labels:
@@ -215,6 +233,21 @@ def write_cloud(path: Path, points: np.ndarray, colors: np.ndarray) -> None:
     os.replace(tmp, path)
 
 
+def write_labelled_cloud(path: Path, points: np.ndarray, colors: np.ndarray, side: np.ndarray) -> None:
+    """PLY (binary) with colour and a per-point `side` label (uchar: 0 front, 1 back), written atomically."""
+    import open3d as o3d
+
+    pc = o3d.t.geometry.PointCloud()
+    pc.point.positions = o3d.core.Tensor(np.ascontiguousarray(points, np.float32))
+    pc.point.colors = o3d.core.Tensor(np.ascontiguousarray(colors, np.uint8))
+    pc.point.side = o3d.core.Tensor(np.ascontiguousarray(side, np.uint8).reshape(-1, 1))
+    tmp = path.with_name(f".{path.stem}.partial.ply")
+    if not o3d.t.io.write_point_cloud(str(tmp), pc, write_ascii=False):
+        tmp.unlink(missing_ok=True)
+        raise OSError(f"could not write point cloud {path}")
+    os.replace(tmp, path)
+
+
 def _trajectory(stamps: np.ndarray, poses: np.ndarray, frame_id: str) -> StampedTrajectory:
     q = np.array([matrix_to_quat(T[:3, :3]) for T in poses])
     return StampedTrajectory(stamps, poses[:, :3, 3], q, frame_id)
@@ -302,9 +335,14 @@ def merge_sides(front: SideMap, back: SideMap, cfg: OrchardConfig) -> MergeOutco
         both = f.ground is not None and b.ground is not None
         pairs.append(SemanticPair(i, j, _merge_axis(f), f.base, _merge_axis(b), b.base,
                                   (f.ground.normal, f.ground.point) if both else None,
-                                  (b.ground.normal, b.ground.point) if both else None))
+                                  (b.ground.normal, b.ground.point) if both else None,
+                                  (f.ground.support_offset_m, b.ground.support_offset_m) if both else (0.0, 0.0)))
+    prior = None
+    if cfg.merge.sigma_alignment_height_m > 0:
+        c_b = np.mean([p.origin_b for p in pairs], axis=0)  # (3,) the paired back trunks' centre
+        prior = HeightPrior(al.front.T_canon_odom[1, :3], c_b, al.T_front_back[:3, :3] @ c_b + al.T_front_back[:3, 3])
     t0 = time.perf_counter()
-    it = initial_transform(pairs, cfg.merge)
+    it = initial_transform(pairs, cfg.merge, prior)
     seconds["initial_transform"] = time.perf_counter() - t0
     sba = None
     if cfg.merge.method == "semantic_ba":
@@ -319,10 +357,44 @@ def merge_sides(front: SideMap, back: SideMap, cfg: OrchardConfig) -> MergeOutco
     return MergeOutcome(cfg.merge.method, it.T_front_back, al.pairs, al, it, None, None, seconds)
 
 
-def two_side_trees(m: MergeOutcome, sides: dict[str, SideMap], cfg: OrchardConfig) -> list[ResultTree]:
+def clouds_in_map(m: MergeOutcome, sides: dict[str, SideMap]) -> dict[str, np.ndarray]:
+    """side -> (P, 3) its fused cloud in map, carried along with its keyframes by the merge."""
+    after = {"front": sides["front"].keyframe_poses, "back": m.T_front_back[None] @ sides["back"].keyframe_poses}
+    if m.sba is not None:
+        after = {"front": m.sba.front_poses, "back": m.sba.back_poses}
+    return {side: move_with_keyframes(sides[side].cloud_points, sides[side].keyframe_poses, P)
+            for side, P in after.items()}
+
+
+# m: the union of both sides' points near a tree is cropped to this cube (half side) before the local
+# ground's disk is cut out of it (cheaper than measuring every point of the row against every axis).
+_FOOT_CROP_M = 1.0
+
+
+def _two_side_ground(clouds: dict[str, np.ndarray], Tt: np.ndarray, foot: np.ndarray, radius: float,
+                     cfg: OrchardConfig, rng: np.random.Generator):
+    """The tree's local ground fitted to both sides' points around the shared trunk (frame `map`).
+
+    Each side sees its half of the 0.5 m disk, often only a patch of it away from the trunk, and a plane
+    through a patch is an extrapolation at the trunk. Together the sides see the disk from both
+    directions: the plane is pinned on both sides of the trunk (the paper's semantic BA shares one plane
+    per tree for the same reason). Tt (4, 4) the shared trunk frame (z up its axis); foot (3,) the
+    per-side estimate of the foot (the disk's centre); radius m the trunk's. None if no plane passes."""
+    near = [P[np.all(np.abs(P - foot) < _FOOT_CROP_M, axis=1)] for P in clouds.values()]
+    pts = np.concatenate(near) if near else np.zeros((0, 3))
+    z = Tt[:3, 2]
+    o_bottom = Tt[:3, 3] + float((foot - Tt[:3, 3]) @ z) * z
+    return ground_around_trunk(pts, o_bottom, Cylinder(z, Tt[:3, 3], radius), cfg.ground, rng)
+
+
+def two_side_trees(m: MergeOutcome, sides: dict[str, SideMap], cfg: OrchardConfig,
+                   clouds: dict[str, np.ndarray] | None = None) -> list[ResultTree]:
     """Every trunk of either side as a tree in map: paired ones with the two-side diameter of eq.
-    objectCylinderFB (one radius from both sides' band points and views), the others flagged one-sided."""
+    objectCylinderFB (one radius from both sides' band points and views) and the foot on the local
+    ground fitted to both sides' points, the others flagged one-sided. clouds: clouds_in_map(m, sides)."""
     tp = cfg.trunks
+    if clouds is None and m.sba is not None:
+        clouds = clouds_in_map(m, sides)
     by = {side: {t.id: t for t in sides[side].trunks} for side in ("front", "back")}
     T_fb = m.T_front_back
     intr = sides["front"].intrinsics
@@ -352,6 +424,10 @@ def two_side_trees(m: MergeOutcome, sides: dict[str, SideMap], cfg: OrchardConfi
             best = max(k for k, _ in heights)
             chosen = [hh for k, hh in heights if k == best]
             pos = Tt[:3, 3] + (float(np.mean(chosen)) if best else min(chosen)) * z
+            r = max([t.diameter_m for t in (f, b) if t.diameter_m is not None] or [0.1]) / 2  # m; 0.1: a typical trunk
+            shared = _two_side_ground(clouds, Tt, pos, r, cfg, rng) if clouds is not None else None
+            if shared is not None:
+                pos = shared.point
         else:
             pos = 0.5 * (f.base + T_fb[:3, :3] @ b.base + T_fb[:3, 3])
         diameter, flags = None, []
@@ -385,8 +461,9 @@ def two_side_trees(m: MergeOutcome, sides: dict[str, SideMap], cfg: OrchardConfi
     return trees
 
 
-def write_merge(out: Path, m: MergeOutcome, sides: dict[str, SideMap]) -> None:
-    """side_merge.json and both sides' trajectories in map (= odom_front)."""
+def write_merge(out: Path, m: MergeOutcome, sides: dict[str, SideMap],
+                clouds: dict[str, np.ndarray] | None = None) -> None:
+    """side_merge.json, both sides' trajectories in map (= odom_front), merged.ply and row.png."""
     al, it, sba = m.alignment, m.initial, m.sba
     extra: dict = {}
     if sba is not None:
@@ -416,6 +493,23 @@ def write_merge(out: Path, m: MergeOutcome, sides: dict[str, SideMap]) -> None:
     for side, P in poses.items():  # (K, 4, 4) T_map_cam
         write_tum(out / f"trajectory_{side}_map.tum", StampedTrajectory(
             sides[side].keyframe_stamps, P[:, :3, 3], np.array([matrix_to_quat(R) for R in P[:, :3, :3]])))
+    # merged.ply: each side's cloud carried along with its keyframes into map
+    own = {"front": sides["front"].keyframe_poses, "back": sides["back"].keyframe_poses}
+    moved = clouds if clouds is not None else clouds_in_map(m, sides)
+    write_labelled_cloud(out / MERGED_PLY, np.concatenate([moved["front"], moved["back"]]),
+                         np.concatenate([sides["front"].cloud_colors, sides["back"].cloud_colors]),
+                         np.repeat([0, 1], [len(moved["front"]), len(moved["back"])]))
+    if al is not None:  # row.png, in the front side's canonical frame of the initial alignment
+        Ta = al.T_front_back
+        bases = {side: np.array([t.base for t in sides[side].trunks]).reshape(-1, 3) for side in poses}
+        before = RowView("before: initial alignment", {
+            "front": sides["front"].cloud_points,
+            "back": sides["back"].cloud_points @ Ta[:3, :3].T + Ta[:3, 3]},
+            {"front": bases["front"], "back": bases["back"] @ Ta[:3, :3].T + Ta[:3, 3]})
+        label = {"semantic_ba": "semantic BA", "initial": "initial transform"}.get(m.method, m.method)
+        after = RowView(f"after: {label}", moved, {
+            side: move_with_keyframes(bases[side], own[side], poses[side]) for side in poses})
+        write_row_png(out / ROW_PNG, al.front.T_canon_odom, [before, after], seed=0)
 
 
 def run(front: str | Path, back: str | Path | None, out: str | Path, cfg: OrchardConfig,
@@ -443,7 +537,17 @@ def run(front: str | Path, back: str | Path | None, out: str | Path, cfg: Orchar
         raise
     finally:
         shutil.rmtree(stage, ignore_errors=True)
-    return RunResult(out, result.sides, result.timings)
+    if result.merge_refused is not None:
+        # The sides' own results are complete and stay; the merge is not guessed (exit code 2), and
+        # an earlier run's merge outputs in `out` would now contradict them.
+        for name in MERGE_OUTPUTS:
+            for f in out.glob(name):
+                f.unlink()
+        raise MergeRefusedError(
+            f"the two sides were not merged: {result.merge_refused}. Each side's results (trajectories, "
+            f"clouds, trunks.json) are in {out}; no side_merge.json and no trees in map were written. "
+            "Run with --set merge.method=off to reconstruct the sides without trying to merge them.", out)
+    return RunResult(out, result.sides, result.timings, result.merge_refused)
 
 
 def _run(front: Path, back: Path | None, out: Path, cfg: OrchardConfig, progress: Progress | None) -> RunResult:
@@ -453,6 +557,7 @@ def _run(front: Path, back: Path | None, out: Path, cfg: OrchardConfig, progress
     timings.add("read_bags", time.perf_counter() - t0)
     labelled = back is None
     sides: dict[str, SideMap] = {}
+    refused: str | None = None
     for side, seq in seqs.items():
         timings.frames += int(np.sum(_side_mask(seq, side))) if labelled else len(seq)
         if labelled:
@@ -469,15 +574,16 @@ def _run(front: Path, back: Path | None, out: Path, cfg: OrchardConfig, progress
             try:
                 merged = merge_sides(sides["front"], sides["back"], cfg)
             except AlignmentError as err:
-                # Each side's own results stay valid; a merge is not guessed.
                 log.warning("side merge refused: %s (no side_merge.json written)", err)
+                refused = str(err)
             else:
-                write_merge(out, merged, sides)
-                write_trees(out, two_side_trees(merged, sides, cfg), frame="map")
+                clouds = clouds_in_map(merged, sides)
+                write_merge(out, merged, sides, clouds)
+                write_trees(out, two_side_trees(merged, sides, cfg, clouds), frame="map")
                 log.info("sides merged (%s) on %d trunk pairs%s", merged.method, len(merged.pairs),
                          ": " + "; ".join(merged.alignment.log) if merged.alignment is not None else "")
             timings.add("merge", time.perf_counter() - t0)
     write_timings(out / "timings.json", timings.stages, frames=timings.frames,
                   recording_duration_s=timings.recording_duration_s)
     atomic_write_text(out / "config.effective.yaml", dump_yaml(cfg))
-    return RunResult(out, sides, timings)
+    return RunResult(out, sides, timings, refused)

@@ -456,7 +456,8 @@ def align_sides(front: AlignmentSide, back: AlignmentSide, params: AlignmentPara
         raise AlignmentError(
             f"the trunks the sides seem to share do not agree (best shift {dx0:+.2f} m along the row: median "
             f"axis gap + diameter difference {best.score_mm:.1f} mm > {params.max_disagreement_mm:g} mm): "
-            "they are probably different trees (the sides cover different stretches of the row)")
+            "they are probably different trees (the sides cover different stretches of the row, or both "
+            "recordings are of the same side)")
     log.append(f"front-view X shift {dx0:+.2f} m, the best of {len(tried)} candidate(s) by trunk agreement "
                + ", ".join(f"{d:+.2f} m: {sc:.1f} mm" for sc, d, _ in tried[:4]))
     log += best.log

@@ -28,7 +28,7 @@ from scipy.spatial.transform import Rotation
 from orchard_mapping.core.geometry import make_transform
 from orchard_mapping.errors import AlignmentError
 
-__all__ = ["MergeParams", "PairResidual", "SemanticPair", "InitialTransform", "initial_transform"]
+__all__ = ["HeightPrior", "MergeParams", "PairResidual", "SemanticPair", "InitialTransform", "initial_transform"]
 
 
 @dataclass
@@ -46,14 +46,23 @@ class MergeParams:
     sigma_line_m: float = 0.005
     sigma_normal_rad: float = 0.02
     sigma_plane_m: float = 0.01
+    # rad, tilt error of a local ground seen away from its trunk (normal errors median 1-4 deg on the
+    # 10-tree rows): its height at the trunk gets sigma_plane_m (+) this times support_offset_m.
+    ground_tilt_sigma_rad: float = 0.05
+    # m, the initial alignment's height of the back side (front-view boundaries and grounds): 8, 17 and
+    # 2 mm off on the 2-tree test row and the 10-tree standard and slope_weeds rows. 0 = not used.
+    sigma_alignment_height_m: float = 0.02
     huber_k: float = 1.345  # in sigmas
 
     def __post_init__(self) -> None:
         if self.method not in ("semantic_ba", "initial", "icp", "off"):
             raise ValueError(f"merge.method must be 'semantic_ba', 'initial', 'icp' or 'off', got {self.method!r}")
-        for name in ("sigma_axis_rad", "sigma_line_m", "sigma_normal_rad", "sigma_plane_m", "huber_k"):
+        for name in ("sigma_axis_rad", "sigma_line_m", "sigma_normal_rad", "sigma_plane_m", "huber_k",
+                     "ground_tilt_sigma_rad"):
             if not getattr(self, name) > 0:
                 raise ValueError(f"merge.{name} must be > 0, got {getattr(self, name)!r}")
+        if not self.sigma_alignment_height_m >= 0:
+            raise ValueError(f"merge.sigma_alignment_height_m must be >= 0, got {self.sigma_alignment_height_m!r}")
 
 
 @dataclass(frozen=True)
@@ -68,6 +77,27 @@ class SemanticPair:
     origin_b: np.ndarray  # (3,) m
     ground_f: tuple[np.ndarray, np.ndarray] | None = None  # (normal (3,), point (3,)) odom_front
     ground_b: tuple[np.ndarray, np.ndarray] | None = None
+    # m, how far from the trunk each ground was seen (LocalGroundFit.support_offset_m; 0 = at the trunk)
+    ground_reach_m: tuple[float, float] = (0.0, 0.0)
+
+    def plane_sigma_m(self, mp: "MergeParams") -> float:
+        """m, sigma of this pair's ground height at the trunk: the base sigma plus each plane's tilt error
+        carried over the distance from where it was seen."""
+        reach = np.nan_to_num(np.asarray(self.ground_reach_m, float))
+        return float(np.sqrt(mp.sigma_plane_m**2 + mp.ground_tilt_sigma_rad**2 * float(reach @ reach)))
+
+
+@dataclass(frozen=True)
+class HeightPrior:
+    """The initial alignment's say on how high the back side sits: the back point `point_b` (odom_back)
+    belongs at the height of `target_f` (odom_front) along `up` (odom_front, unit). Trunk lines say
+    nothing along the axis; only grounds do, and a tree's local ground seen in a corner of its disk can
+    be centimetres off at the trunk (2-tree test row: one such ground put the back side 35-49 mm low;
+    the alignment's height, from the front-view boundaries, was 8 mm off)."""
+
+    up: np.ndarray  # (3,)
+    point_b: np.ndarray  # (3,) m
+    target_f: np.ndarray  # (3,) m
 
 
 @dataclass(frozen=True)
@@ -93,8 +123,10 @@ def _skew(v: np.ndarray) -> np.ndarray:
     return np.array([[0.0, -v[2], v[1]], [v[2], 0.0, -v[0]], [-v[1], v[0], 0.0]])
 
 
-def _linear_system(pairs: list[SemanticPair]) -> tuple[np.ndarray, np.ndarray]:
-    """A (rows, 12), b (rows,) of constraints 1-3 with x = [r1; r2; r3; t] (R's columns, then t)."""
+def _linear_system(pairs: list[SemanticPair], prior: HeightPrior | None, mp: MergeParams
+                   ) -> tuple[np.ndarray, np.ndarray]:
+    """A (rows, 12), b (rows,) of constraints 1-3 with x = [r1; r2; r3; t] (R's columns, then t); the
+    height prior's row weighted against the ground rows by their sigmas."""
     rows, rhs = [], []
 
     def rotate_rows(v_b: np.ndarray, v_f: np.ndarray) -> None:  # R v_b = v_f
@@ -117,20 +149,30 @@ def _linear_system(pairs: list[SemanticPair]) -> tuple[np.ndarray, np.ndarray]:
         if p.ground_f is None or p.ground_b is None:
             continue
         n, o_b = p.ground_f[0], p.ground_b[1]
-        rows.append(np.concatenate([o_b[0] * n, o_b[1] * n, o_b[2] * n, n]))
-        rhs.append(float(n @ p.ground_f[1]))
+        w = mp.sigma_plane_m / p.plane_sigma_m(mp)
+        rows.append(w * np.concatenate([o_b[0] * n, o_b[1] * n, o_b[2] * n, n]))
+        rhs.append(w * float(n @ p.ground_f[1]))
+    if prior is not None:  # up . (R c_b + t) = up . target
+        w = mp.sigma_plane_m / mp.sigma_alignment_height_m
+        u, c = prior.up, prior.point_b
+        rows.append(w * np.concatenate([c[0] * u, c[1] * u, c[2] * u, u]))
+        rhs.append(w * float(u @ prior.target_f))
     return np.asarray(rows), np.asarray(rhs)
 
 
-def _residuals(R: np.ndarray, t: np.ndarray, pairs: list[SemanticPair], mp: MergeParams) -> np.ndarray:
-    """Sigma-scaled residuals of constraints 1-3, pair by pair: 3 + 3 (+ 3 + 1 with grounds) each."""
+def _residuals(R: np.ndarray, t: np.ndarray, pairs: list[SemanticPair], mp: MergeParams,
+               prior: HeightPrior | None = None) -> np.ndarray:
+    """Sigma-scaled residuals of constraints 1-3, pair by pair: 3 + 3 (+ 3 + 1 with grounds) each, then
+    the height prior's one."""
     out = []
     for p in pairs:
         out.append((R @ p.axis_b - p.axis_f) / mp.sigma_axis_rad)
         out.append(np.cross(p.axis_f, R @ p.origin_b + t - p.origin_f) / mp.sigma_line_m)
         if p.ground_f is not None and p.ground_b is not None:
             out.append((R @ p.ground_b[0] - p.ground_f[0]) / mp.sigma_normal_rad)
-            out.append(np.atleast_1d(p.ground_f[0] @ (R @ p.ground_b[1] + t - p.ground_f[1])) / mp.sigma_plane_m)
+            out.append(np.atleast_1d(p.ground_f[0] @ (R @ p.ground_b[1] + t - p.ground_f[1])) / p.plane_sigma_m(mp))
+    if prior is not None:
+        out.append(np.atleast_1d(prior.up @ (R @ prior.point_b + t - prior.target_f)) / mp.sigma_alignment_height_m)
     return np.concatenate(out)
 
 
@@ -139,14 +181,17 @@ def _huber_cost(r: np.ndarray, k: float) -> float:
     return float(np.sum(np.where(a <= k, 0.5 * a**2, k * (a - 0.5 * k))))
 
 
-def initial_transform(pairs: list[SemanticPair], params: MergeParams) -> InitialTransform:
-    """Rigid odom_front <- odom_back from paired trunk axes and local grounds (module docstring)."""
+def initial_transform(pairs: list[SemanticPair], params: MergeParams,
+                      height_prior: HeightPrior | None = None) -> InitialTransform:
+    """Rigid odom_front <- odom_back from paired trunk axes and local grounds (module docstring), with
+    the initial alignment's height of the back side as a weak prior when given."""
     if len(pairs) < 2:
         raise AlignmentError(f"the initial transform needs at least two trunks seen from both sides, "
                              f"got {len(pairs)}")
-    if not any(p.ground_f is not None and p.ground_b is not None for p in pairs):
-        raise AlignmentError("the initial transform needs at least one tree with a local ground on both sides")
-    A, b = _linear_system(pairs)
+    if height_prior is None and not any(p.ground_f is not None and p.ground_b is not None for p in pairs):
+        raise AlignmentError("the initial transform needs at least one tree with a local ground on both sides "
+                             "or the initial alignment's height")
+    A, b = _linear_system(pairs, height_prior, params)
     x, *_ = np.linalg.lstsq(A, b, rcond=None)
     M = x[:9].reshape(3, 3).T  # columns r1 r2 r3
     U, _, Vt = np.linalg.svd(M)
@@ -155,10 +200,10 @@ def initial_transform(pairs: list[SemanticPair], params: MergeParams) -> Initial
     # With R fixed at its nearest rotation, t again by least squares on the translation columns.
     resid_b = b - A[:, :9] @ R0.T.reshape(-1)
     t0, *_ = np.linalg.lstsq(A[:, 9:], resid_b, rcond=None)
-    cost0 = _huber_cost(_residuals(R0, t0, pairs, params), params.huber_k)
+    cost0 = _huber_cost(_residuals(R0, t0, pairs, params, height_prior), params.huber_k)
 
     def fun(z: np.ndarray) -> np.ndarray:
-        return _residuals(Rotation.from_rotvec(z[:3]).as_matrix() @ R0, z[3:], pairs, params)
+        return _residuals(Rotation.from_rotvec(z[:3]).as_matrix() @ R0, z[3:], pairs, params, height_prior)
 
     sol = least_squares(fun, np.concatenate([np.zeros(3), t0]), loss="huber", f_scale=params.huber_k,
                         method="trf", x_scale=[0.01, 0.01, 0.01, 0.01, 0.01, 0.01])
@@ -174,4 +219,4 @@ def initial_transform(pairs: list[SemanticPair], params: MergeParams) -> Initial
             gm = float(1000 * abs(p.ground_f[0] @ (R @ p.ground_b[1] + t - p.ground_f[1])))
         res.append(PairResidual(p.front_id, p.back_id, a, 1000 * line, gd, gm))
     return InitialTransform(make_transform(R, t), tuple(res), make_transform(R0, t0), cost0,
-                            _huber_cost(_residuals(R, t, pairs, params), params.huber_k))
+                            _huber_cost(_residuals(R, t, pairs, params, height_prior), params.huber_k))

@@ -45,6 +45,7 @@ __all__ = [
     "TrunkParams",
     "TrunkView",
     "build_trunk_landmarks",
+    "ground_around_trunk",
     "side_up_direction",
 ]
 
@@ -269,7 +270,7 @@ def _band_rows_mask(det_mask: np.ndarray, depth: np.ndarray, intr: CameraIntrins
     return out
 
 
-def _ground_around(points: np.ndarray, o_bottom: np.ndarray, trunk: Cylinder, ground_params: GroundParams,
+def ground_around_trunk(points: np.ndarray, o_bottom: np.ndarray, trunk: Cylinder, ground_params: GroundParams,
                    rng: np.random.Generator) -> LocalGroundFit | None:
     """The ground plane within ground_params.radius_m of the trunk axis (trunk prior, core.ground) from
     points (P, 3) odom; o_bottom (3,) the axis at the trunk's lowest point. The trunk's own surface
@@ -288,7 +289,7 @@ def _wide_ground(points: np.ndarray, o_bottom: np.ndarray, trunk: Cylinder, grou
     ground (the terrain within 0.5 m) and is not reported as one."""
     if ground_params.wide_radius_m <= ground_params.radius_m:
         return None
-    return _ground_around(points, o_bottom, trunk, replace(ground_params, radius_m=ground_params.wide_radius_m), rng)
+    return ground_around_trunk(points, o_bottom, trunk, replace(ground_params, radius_m=ground_params.wide_radius_m), rng)
 
 
 def build_trunk_landmarks(points: np.ndarray, poses: np.ndarray, views: list[TrunkView], intr: CameraIntrinsics,
@@ -370,7 +371,7 @@ def _model_trunk(lm_id: int, obs: list[tuple[TrunkView, Detection]], places: np.
     origin = coarse.cylinder.origin
     # 4. local ground with the trunk axis prior; the trunk's own surface is never ground
     o_bottom = origin + (h_bottom - origin @ axis) * axis
-    ground = _ground_around(local, o_bottom, coarse.cylinder, ground_params, rng)
+    ground = ground_around_trunk(local, o_bottom, coarse.cylinder, ground_params, rng)
     h_lo, h_hi = params.diameter_height_m - params.band_m / 2, params.diameter_height_m + params.band_m / 2
     height_ground = ground  # the plane the diameter height is measured from
     base = o_bottom if ground is None else ground.point

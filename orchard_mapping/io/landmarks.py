@@ -83,7 +83,8 @@ def write_grounds(path: str | Path, sides: Mapping[str, tuple[str, list[TrunkLan
     for s, (frame, lms) in sides.items():
         grounds = [{"trunk_id": lm.id, "normal": _vec(lm.ground.normal), "offset_m": _num(lm.ground.offset),
                     "point": _vec(lm.ground.point), "inliers": lm.ground.inliers, "rmse_m": _num(lm.ground.rmse_m),
-                    "candidates": lm.ground.candidates, "support_m2": _num(lm.ground.support_m2)}
+                    "candidates": lm.ground.candidates, "support_m2": _num(lm.ground.support_m2),
+                    "support_offset_m": _num(lm.ground.support_offset_m)}
                    for lm in lms if lm.ground is not None]
         doc["sides"][s] = {"frame": frame, "grounds": grounds}
     return atomic_write_json(path, doc)

@@ -10,6 +10,7 @@ are measured by benchmarks/single_side.py.
 from __future__ import annotations
 
 import json
+import shutil
 from pathlib import Path
 
 import numpy as np
@@ -20,7 +21,7 @@ from typer.testing import CliRunner
 from orchard_mapping.cli.main import app
 from orchard_mapping.config import load_config
 from orchard_mapping.core.odometry import RGBDFrontEnd
-from orchard_mapping.errors import BagFormatError
+from orchard_mapping.errors import AlignmentError, BagError, BagFormatError
 from orchard_mapping.eval import evaluate_result
 from orchard_mapping.eval.metrics import trajectory_error
 from orchard_mapping.io.bags import BagWriter, read_rgbd
@@ -28,7 +29,7 @@ from orchard_mapping.io.results import read_tum
 from orchard_mapping.core.types import StampedTrajectory
 from orchard_mapping.core.geometry import matrix_to_quat
 from orchard_mapping.core.sidemap import SideMap
-from orchard_mapping.pipeline import Timings, reconstruct_side, run
+from orchard_mapping.pipeline import Timings, merge_sides, reconstruct_side, run
 from orchard_mapping.sim.scenario import load_scenario
 from orchard_mapping.sim.simulate import simulate
 
@@ -60,12 +61,15 @@ def reconstructed(tmp_path_factory, seed_offset) -> tuple[Path, Path]:
     return sim, out
 
 
+_MODEL_SIDES: dict[str, SideMap] = {}  # the side maps of reconstructed_model, for merges on other inputs
+
+
 @pytest.fixture(scope="module")
 def reconstructed_model(reconstructed, tmp_path_factory) -> tuple[Path, Path]:
     """The same row through `run` with the default configuration: trunks from the shipped detector."""
     sim, _ = reconstructed
     out = tmp_path_factory.mktemp("standard_model") / "result"
-    run(sim / "front", sim / "back", out, load_config())
+    _MODEL_SIDES.update(run(sim / "front", sim / "back", out, load_config()).sides)
     return sim, out
 
 
@@ -289,11 +293,62 @@ def test_the_sides_are_merged_on_their_shared_trunks(reconstructed_model, accura
     accuracy.at_most("initial merge error at the trunk bases (max), mm", m["max_translation_error_mm"], 30.0)
     accuracy.at_most("initial merge rotation error, deg", m["rotation_error_deg"], 2.5)
     assert (out / "trajectory_back_map.tum").is_file()
+    _assert_merged_cloud_in_place(sim, out)
     # trees.json: each tree once, in map, with the two-side diameter (eq. objectCylinderFB)
     rep = evaluate_result(sim / "ground_truth.json", out).to_dict()
     assert rep["matching"]["matched"] == rep["matching"]["true_trees"] == rep["matching"]["result_trees"] == 2
     accuracy.at_most("tree position in map (mean), mm", 1000 * rep["matching"]["mean_distance_m"], 30.0)
     accuracy.at_most("two-side trunk diameter MAE, mm", rep["traits"]["trunk_diameter_mae_mm"], 3.0)
+
+
+def test_swapped_sides_merge_correctly_and_one_side_twice_is_refused(reconstructed_model, accuracy):
+    """Bad input: the back bag given as front and the front as back merge into the same row (the inverse
+    transform, as accurate); a side merged with itself is never a merge (refused, typed)."""
+    sim, out = reconstructed_model
+    cfg = load_config()
+    truth = json.loads((sim / "ground_truth.json").read_text())
+    T_true = np.array(truth["T_front_back"])
+    straight = merge_sides(_MODEL_SIDES["front"], _MODEL_SIDES["back"], cfg)
+    swapped = merge_sides(_MODEL_SIDES["back"], _MODEL_SIDES["front"], cfg)
+    assert sorted((j, i) for i, j in swapped.pairs) == sorted(straight.pairs)
+    bases_f = np.array([t.base for t in _MODEL_SIDES["front"].trunks])  # odom_front
+    for T, T_ref, pts in ((straight.T_front_back, T_true, np.array([t.base for t in _MODEL_SIDES["back"].trunks])),
+                          (swapped.T_front_back, np.linalg.inv(T_true), bases_f)):
+        err = np.linalg.norm(pts @ (T[:3, :3] - T_ref[:3, :3]).T + T[:3, 3] - T_ref[:3, 3], axis=1)
+        accuracy.at_most("merge error at the trunk bases, sides as given or swapped, mm", 1000 * err.max(), 30.0)
+    for side in ("front", "back"):
+        with pytest.raises(AlignmentError):
+            merge_sides(_MODEL_SIDES[side], _MODEL_SIDES[side], cfg)
+
+
+def test_one_recording_given_as_both_sides_is_a_clear_error(short_sim, tmp_path):
+    with pytest.raises(BagError, match="same file"):
+        run(short_sim / "front", short_sim / "front", tmp_path / "out", load_config())
+    shutil.copytree(short_sim / "front", tmp_path / "copy")
+    with pytest.raises(BagError, match="same recording"):
+        run(short_sim / "front", tmp_path / "copy", tmp_path / "out", load_config())
+    assert not (tmp_path / "out").exists()
+
+
+def _assert_merged_cloud_in_place(sim: Path, out: Path) -> None:
+    """merged.ply holds both sides' clouds (labelled) in map; the back side's points sit where the truth
+    puts them (each point's own-side position carried into the front frame by the true transform), as
+    close as the merge itself (the 30 mm bound above); row.png is a picture."""
+    import open3d as o3d
+
+    m = o3d.t.io.read_point_cloud(str(out / "merged.ply"))
+    side = m.point.side.numpy().ravel()
+    front = o3d.t.io.read_point_cloud(str(out / "front.ply")).point.positions.numpy()
+    back = o3d.t.io.read_point_cloud(str(out / "back.ply")).point.positions.numpy()
+    assert np.count_nonzero(side == 0) == len(front) and np.count_nonzero(side == 1) == len(back)
+    assert m.point.colors.numpy().dtype == np.uint8
+    truth = json.loads((sim / "ground_truth.json").read_text())
+    T = np.array(truth["T_front_back"])  # odom_front <- odom_back, true
+    merged_back = m.point.positions.numpy()[side == 1].astype(float)
+    expected = back.astype(float) @ T[:3, :3].T + T[:3, 3]
+    err = np.linalg.norm(merged_back - expected, axis=1)
+    assert float(np.median(err)) <= 0.030, np.percentile(err, [50, 90])
+    assert (out / "row.png").read_bytes()[:8] == b"\x89PNG\r\n\x1a\n"
 
 
 def test_trunk_diameters_of_each_side_within_goals(reconstructed, accuracy):
@@ -353,21 +408,27 @@ def test_colour_without_depth_is_a_clear_error(short_sim, tmp_path):
     assert "colouronly" in str(exc.value)
 
 
-def test_a_side_without_trunks_still_writes_its_map_and_says_so(short_sim, tmp_path, caplog):
+def test_sides_without_trunks_keep_their_maps_and_the_merge_is_refused_with_exit_code_2(short_sim, tmp_path,
+                                                                                         caplog):
+    """No merge is guessed without shared trunks: `orchard-map run` exits 2 naming why, each side's own
+    results are written, nothing of the merge is (an earlier run's merge outputs in the folder go too)."""
     empty = tmp_path / "masks"
     for side in ("front", "back"):
         (empty / side).mkdir(parents=True)
         (empty / side / "index.csv").write_text("frame,stamp\n")
-    cfg = load_config(overrides={"trunks": {"source": "masks", "masks_dir": str(empty)}})
     out = tmp_path / "result"
-    run(short_sim / "front", short_sim / "back", out, cfg)
+    out.mkdir()
+    (out / "side_merge.json").write_text("{}")  # stale, from an earlier run
+    res = CliRunner().invoke(app, ["run", str(short_sim / "front"), str(short_sim / "back"), "--out", str(out),
+                                   "--set", "trunks.source=masks", "--set", f"trunks.masks_dir={empty}"])
+    assert res.exit_code == 2, res.output
+    assert "not merged" in res.output and "seen from both sides" in res.output and "merge.method=off" in res.output
     assert (out / "trajectory_front.tum").is_file() and (out / "front.ply").is_file()
     trunks = json.loads((out / "trunks.json").read_text())["sides"]
     assert trunks["front"]["trunks"] == [] and trunks["back"]["trunks"] == []
     assert "front: no trunk found" in caplog.text
-    # no merge is guessed without trunks: the refusal is said, and no side_merge.json written
-    assert "side merge refused" in caplog.text and "seen from both sides" in caplog.text
-    assert not (out / "side_merge.json").exists()
+    assert not (out / "side_merge.json").exists() and not (out / "trees.json").exists()
+    assert not list(out.glob("trajectory_*_map.tum")) and not list(out.glob(".staging-*"))
 
 
 def test_blank_frames_do_not_crash_the_front_end(short_sim, tmp_path):

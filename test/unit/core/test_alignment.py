@@ -11,7 +11,7 @@ from scipy.spatial.transform import Rotation
 from orchard_mapping.core.alignment import (AlignmentParams, AlignmentSide, align_sides, alpha_boundary, cpd_rigid_2d,
                                             pair_trunks)
 from orchard_mapping.core.geometry import make_transform, rotation_angle_deg
-from orchard_mapping.core.merge import MergeParams, SemanticPair, initial_transform
+from orchard_mapping.core.merge import HeightPrior, MergeParams, SemanticPair, initial_transform
 from orchard_mapping.errors import AlignmentError
 
 
@@ -206,3 +206,52 @@ def test_the_initial_transform_needs_two_trunks_and_a_ground():
     no_ground = [SemanticPair(p.front_id, p.back_id, p.axis_f, p.origin_f, p.axis_b, p.origin_b) for p in pairs]
     with pytest.raises(AlignmentError, match="local ground"):
         initial_transform(no_ground, MergeParams())
+
+
+def _vertical_error_mm(res, T: np.ndarray, pairs) -> float:
+    """Mean error along the front's up (z here) at the back trunk origins, mm."""
+    O_b = np.array([p.origin_b for p in pairs])
+    d = O_b @ (res.T_front_back[:3, :3] - T[:3, :3]).T + res.T_front_back[:3, 3] - T[:3, 3]
+    return 1000 * float(np.mean(d[:, 2]))
+
+
+def test_a_ground_seen_far_from_its_trunk_weighs_less_than_the_alignment_height():
+    """Trunk lines say nothing along the axis: with two trees and one ground pair, that ground decides
+    the height. A ground seen only 0.4 m from its trunk (a corner of the disk) and 5 cm off there must
+    not pull the back side down when the initial alignment says otherwise (2-tree test row: it did)."""
+    rng = np.random.default_rng(3)
+    T = _random_T(rng)
+    Ti = np.linalg.inv(T)
+    pairs = _pairs_under(T, rng, n=2)
+    bad = pairs[1]
+    gp_b = bad.ground_b[1] - Ti[:3, :3] @ np.array([0.0, 0.0, 0.05])  # the back plane 5 cm low at the trunk
+    pairs = [SemanticPair(p.front_id, p.back_id, p.axis_f, p.origin_f, p.axis_b, p.origin_b) for p in pairs[:1]]
+    far = SemanticPair(bad.front_id, bad.back_id, bad.axis_f, bad.origin_f, bad.axis_b, bad.origin_b, bad.ground_f,
+                       (bad.ground_b[0], gp_b), ground_reach_m=(0.37, 0.40))
+    near = SemanticPair(*[getattr(far, f) for f in ("front_id", "back_id", "axis_f", "origin_f", "axis_b",
+                                                    "origin_b", "ground_f", "ground_b")], ground_reach_m=(0.0, 0.0))
+    c_b = np.mean([p.origin_b for p in pairs + [far]], axis=0)
+    truth_height = T[:3, :3] @ c_b + T[:3, 3] + np.array([0.0, 0.0, 0.008])  # the alignment: 8 mm high
+    prior = HeightPrior(np.array([0.0, 0.0, 1.0]), c_b, truth_height)
+    mp = MergeParams()
+    only_ground = _vertical_error_mm(initial_transform(pairs + [near], mp), T, pairs + [near])
+    near_prior = _vertical_error_mm(initial_transform(pairs + [near], mp, prior), T, pairs + [near])
+    far_prior = _vertical_error_mm(initial_transform(pairs + [far], mp, prior), T, pairs + [far])
+    assert only_ground > 30  # the ground alone: most of its 5 cm error (sign: the back lifted to meet it)
+    assert near_prior > 0.6 * only_ground  # a ground seen at its trunk outweighs the prior (sigma 1 vs 2 cm)
+    assert far_prior < 0.6 * only_ground  # seen from afar (sigma 2.9 cm) it no longer decides alone (measured 17, 30 mm)
+
+
+def test_the_alignment_height_stands_in_when_no_tree_has_ground_on_both_sides():
+    rng = np.random.default_rng(4)
+    T = _random_T(rng)
+    pairs = [SemanticPair(p.front_id, p.back_id, p.axis_f, p.origin_f, p.axis_b, p.origin_b)
+             for p in _pairs_under(T, rng, n=3)]
+    c_b = np.mean([p.origin_b for p in pairs], axis=0)
+    heights = []
+    for dz in (-0.006, 0.006):  # the alignment says 6 mm low, then 6 mm high: the merge follows it
+        prior = HeightPrior(np.array([0.0, 0.0, 1.0]), c_b, T[:3, :3] @ c_b + T[:3, 3] + [0.0, 0.0, dz])
+        res = initial_transform(pairs, MergeParams(), prior)
+        heights.append(_vertical_error_mm(res, T, pairs))
+        assert rotation_angle_deg((np.linalg.inv(T) @ res.T_front_back)[:3, :3]) < 0.5
+    assert 9.0 < heights[1] - heights[0] < 12.5 and all(abs(h) < 10 for h in heights), heights

@@ -72,3 +72,21 @@ def test_too_few_points_give_no_ground_and_bad_settings_are_named():
         GroundParams(max_below_fraction=1.5)
     with pytest.raises(GroundError, match="trunk axis prior"):
         fit_local_ground(rng.normal(size=(100, 3)), np.zeros(3), np.zeros(3), GroundParams(), rng)
+
+
+def test_the_ground_says_how_far_from_the_trunk_it_was_seen():
+    """support_offset_m: ~0 for ground all round the trunk, ~the patch's distance for ground seen only in
+    a corner of the disk (its height at the trunk is then an extrapolation the merge weighs less)."""
+    rng = np.random.default_rng(0)
+    axis, base = np.array([0.0, 0.0, 1.0]), np.zeros(3)
+    params = GroundParams()
+    r, ph = 0.5 * np.sqrt(rng.uniform(0, 1, 4000)), rng.uniform(0, 2 * np.pi, 4000)
+    xy = np.c_[r * np.cos(ph), r * np.sin(ph)]
+    disk = np.c_[xy, _ground_z(*xy.T) + rng.normal(0, 0.004, len(xy))]
+    corner_xy = xy[(xy[:, 0] > 0.25) & (np.abs(xy[:, 1]) < 0.2)]
+    corner = np.c_[corner_xy, _ground_z(*corner_xy.T) + rng.normal(0, 0.004, len(corner_xy))]
+    whole = fit_local_ground(disk, axis, base, params, np.random.default_rng(1))
+    part = fit_local_ground(corner, axis, base, params, np.random.default_rng(1))
+    assert whole is not None and part is not None
+    assert whole.support_offset_m < 0.05
+    assert 0.3 < part.support_offset_m < 0.45  # the corner's centre lies ~0.37 m out

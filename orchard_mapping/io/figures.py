@@ -1,0 +1,79 @@
+"""row.png: the row from the top and from the front, before and after the side merge (docs/results.md).
+
+Drawn in the front side's canonical frame of the initial alignment (X along the row, Y up, Z depth
+towards the back side), so that the row reads left to right whatever the camera's frames were.
+"""
+
+from __future__ import annotations
+
+import os
+from dataclasses import dataclass
+from pathlib import Path
+
+import numpy as np
+
+__all__ = ["RowView", "write_row_png"]
+
+MAX_POINTS = 40_000  # per side and panel: enough to read the row, small enough to draw in a second
+DEPTH_WINDOW_M = 2.0  # m either side of the trunk line: the neighbouring rows are left out
+SIDE_COLOURS = {"front": "#1f77b4", "back": "#ff7f0e"}
+
+
+@dataclass(frozen=True)
+class RowView:
+    """One column of the figure: both sides' points and trunk bases in map (m)."""
+
+    title: str
+    points: dict[str, np.ndarray]  # side -> (P, 3)
+    trunks: dict[str, np.ndarray]  # side -> (T, 3) trunk bases
+
+
+def write_row_png(path: Path, T_canon_map: np.ndarray, views: list[RowView], seed: int = 0) -> None:
+    """Top view (X, Z) and front view (X, Y) of each RowView side by side; written atomically."""
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    rng = np.random.default_rng(seed)
+    R, t = T_canon_map[:3, :3], T_canon_map[:3, 3]
+
+    def canon(p: np.ndarray) -> np.ndarray:
+        return np.asarray(p, float).reshape(-1, 3) @ R.T + t
+
+    trunk_z = [canon(v)[:, 2] for view in views for v in view.trunks.values() if len(v)]
+    z0 = float(np.median(np.concatenate(trunk_z))) if trunk_z else 0.0
+    fig, axes = plt.subplots(2, len(views), figsize=(7 * len(views), 7), squeeze=False, sharex=True)
+    for col, view in enumerate(views):
+        top, front = axes[0, col], axes[1, col]
+        for side, pts in view.points.items():
+            c = canon(pts)
+            c = c[np.abs(c[:, 2] - z0) <= DEPTH_WINDOW_M]
+            if len(c) > MAX_POINTS:
+                c = c[rng.choice(len(c), MAX_POINTS, replace=False)]
+            kw = dict(s=0.3, c=SIDE_COLOURS.get(side, "grey"), alpha=0.35, linewidths=0, rasterized=True)
+            top.scatter(c[:, 0], c[:, 2], label=f"{side} side", **kw)
+            front.scatter(c[:, 0], c[:, 1], **kw)
+        for side, bases in view.trunks.items():
+            c = canon(bases)
+            mk = dict(marker="x" if side == "front" else "+", s=40, c="k" if side == "front" else "r",
+                      linewidths=1.2)
+            top.scatter(c[:, 0], c[:, 2], label=f"{side} trunks", **mk)
+            front.scatter(c[:, 0], c[:, 1], **mk)
+        top.set_title(f"{view.title}: top view")
+        front.set_title(f"{view.title}: front view")
+        top.set_ylabel("depth Z (m)")
+        front.set_ylabel("up Y (m)")
+        front.set_xlabel("along the row X (m)")
+        for ax in (top, front):
+            ax.set_aspect("equal", adjustable="datalim")
+            ax.grid(True, linewidth=0.3)
+        top.legend(loc="upper right", fontsize=7, markerscale=2)
+    fig.tight_layout()
+    path = Path(path)
+    tmp = path.with_name(f".{path.stem}.partial.png")
+    try:
+        fig.savefig(tmp, dpi=110)
+    finally:
+        plt.close(fig)
+    os.replace(tmp, path)
