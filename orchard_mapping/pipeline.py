@@ -26,10 +26,9 @@ from orchard_mapping.core.bundle_adjustment import BAResult, bundle_adjust, opti
 from orchard_mapping.core.cylinder import CylinderError, fit_cylinders_shared_radius
 from orchard_mapping.core.fusion import FusionResult, fuse_side
 from orchard_mapping.core.merge import HeightPrior, InitialTransform, SemanticPair, initial_transform
-from orchard_mapping.core.geometry import matrix_to_quat
+from orchard_mapping.core.geometry import matrix_to_quat, move_with_keyframes
 from orchard_mapping.core.odometry import RGBDFrontEnd
-from orchard_mapping.core.semantic_ba import (SemanticBAResult, SideShapes, TrunkShape, move_with_keyframes,
-                                             semantic_bundle_adjust, trunk_frame)
+from orchard_mapping.core.semantic_ba import SemanticBAResult, SideShapes, TrunkShape, semantic_bundle_adjust, trunk_frame
 from orchard_mapping.core.sidemap import FrontEndResult, LoopClosure, SideMap
 from orchard_mapping.core.cylinder import Cylinder
 from orchard_mapping.core.trunks import TrunkLandmark, TrunkView, build_trunk_landmarks, ground_around_trunk

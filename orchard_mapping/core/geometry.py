@@ -144,3 +144,20 @@ def path_length(positions: np.ndarray) -> float:
     if positions.shape[0] < 2:
         return 0.0
     return float(np.linalg.norm(np.diff(positions, axis=0), axis=1).sum())
+
+
+def move_with_keyframes(points: np.ndarray, poses_before: np.ndarray, poses_after: np.ndarray) -> np.ndarray:
+    """(P, 3) points of a side's cloud carried along with its keyframes: each point moves as the
+    keyframe whose camera is nearest moved (T_after T_before^-1). The semantic BA bends a side, so one
+    rigid transform would leave its far end off by the drift it corrected; corrections change slowly
+    along a side (per-step sigmas), so the nearest camera is a good enough carrier.
+
+    points (P, 3) in the frame of poses_before (K, 4, 4); poses_after (K, 4, 4) in the target frame."""
+    from scipy.spatial import cKDTree
+
+    pts = np.asarray(points, float)
+    if len(pts) == 0:
+        return pts.reshape(0, 3)
+    delta = poses_after @ np.linalg.inv(poses_before)  # (K, 4, 4)
+    _, k = cKDTree(poses_before[:, :3, 3]).query(pts)  # (P,) nearest keyframe camera
+    return np.einsum("pij,pj->pi", delta[k, :3, :3], pts) + delta[k, :3, 3]

@@ -31,8 +31,8 @@ from gtsam.symbol_shorthand import B, F, G, T
 
 from orchard_mapping.errors import AlignmentError
 
-__all__ = ["SemanticBAParams", "SideShapes", "SemanticBAResult", "TrunkShape", "move_with_keyframes",
-           "semantic_bundle_adjust", "trunk_frame"]
+__all__ = ["SemanticBAParams", "SideShapes", "SemanticBAResult", "TrunkShape", "semantic_bundle_adjust",
+           "trunk_frame"]
 
 logger = logging.getLogger(__name__)
 
@@ -199,21 +199,3 @@ def _plane_in_map(plane_cam: np.ndarray, T_map_cam: np.ndarray) -> tuple[np.ndar
     R, t = T_map_cam[:3, :3], T_map_cam[:3, 3]
     n = R @ plane_cam[:3]
     return n, float(plane_cam[3] - n @ t)
-
-
-
-def move_with_keyframes(points: np.ndarray, poses_before: np.ndarray, poses_after: np.ndarray) -> np.ndarray:
-    """(P, 3) points of a side's cloud carried along with its keyframes: each point moves as the
-    keyframe whose camera is nearest moved (T_after T_before^-1). The semantic BA bends a side, so one
-    rigid transform would leave its far end off by the drift it corrected; corrections change slowly
-    along a side (per-step sigmas), so the nearest camera is a good enough carrier.
-
-    points (P, 3) in the frame of poses_before (K, 4, 4); poses_after (K, 4, 4) in the target frame."""
-    from scipy.spatial import cKDTree
-
-    pts = np.asarray(points, float)
-    if len(pts) == 0:
-        return pts.reshape(0, 3)
-    delta = poses_after @ np.linalg.inv(poses_before)  # (K, 4, 4)
-    _, k = cKDTree(poses_before[:, :3, 3]).query(pts)  # (P,) nearest keyframe camera
-    return np.einsum("pij,pj->pi", delta[k, :3, :3], pts) + delta[k, :3, 3]

@@ -12,7 +12,7 @@ from pathlib import Path
 import numpy as np
 import yaml
 
-from orchard_mapping.core.geometry import transform_points, umeyama
+from orchard_mapping.core.geometry import move_with_keyframes, quat_to_matrix, transform_points, umeyama
 from orchard_mapping.errors import AlignmentError, ResultFormatError
 from orchard_mapping.eval.ground_truth import GroundTruth, load_ground_truth
 from orchard_mapping.eval.metrics import (
@@ -50,7 +50,54 @@ from orchard_mapping.io.results import (
 
 __all__ = ["evaluate_result"]
 
+
+def _keyframe_poses(path: Path) -> tuple[np.ndarray, np.ndarray]:
+    """(stamps (K,), poses (K, 4, 4)) of a TUM file."""
+    tr = read_tum(path)
+    T = np.tile(np.eye(4), (len(tr.stamps), 1, 1))
+    T[:, :3, :3] = [quat_to_matrix(q) for q in tr.quaternions]
+    T[:, :3, 3] = tr.positions
+    return np.asarray(tr.stamps, float), T
+
+
+def _trunk_axis_gaps_mm(result_dir: Path, sm, trunks, height_m: float) -> dict[str, float] | None:
+    """Median and max distance (mm) between the two sides' axes of each paired trunk at the diameter
+    height, after the merge: each side's trunk axis (trunks.json, its own frame; the cone's where fitted)
+    carried into map as its keyframes were (trajectory_<side>.tum -> trajectory_<side>_map.tum). None if a
+    part is missing."""
+    pairs = (sm.residuals or {}).get("pairs") or []
+    frames = {}
+    for side in ("front", "back"):
+        own, in_map = result_dir / trajectory_filename(side), result_dir / f"trajectory_{side}_map.tum"
+        if not (own.is_file() and in_map.is_file()):
+            return None
+        (s0, P0), (s1, P1) = _keyframe_poses(own), _keyframe_poses(in_map)
+        if len(s0) != len(s1) or not np.allclose(s0, s1, atol=1e-6):
+            raise ResultFormatError(f"{in_map.name}: its keyframes are not those of {own.name}")
+        frames[side] = (P0, P1)
+    by = {(t.side, t.id): t for t in trunks}
+    gaps = []
+    for p in pairs:
+        ends = []
+        for side, key in (("front", "front_id"), ("back", "back_id")):
+            t = by.get((side, int(p[key])))
+            if t is None:
+                raise ResultFormatError(f"side_merge.json pairs {side} trunk {p[key]}, absent from {TRUNKS_JSON}")
+            a = t.axis if t.axis_cone is None else t.axis_cone  # the cone's: the trunk's centreline
+            a = a / np.linalg.norm(a)
+            p0 = t.base + height_m * a  # the axis at the diameter height
+            pts = np.array([p0, p0 + a])  # (2, 3) on the axis
+            ends.append(move_with_keyframes(pts, *frames[side]))
+        (f0, f1), (b0, b1) = ends
+        a = (b1 - b0) / np.linalg.norm(b1 - b0)
+        d = f0 - b0
+        gaps.append(1000.0 * float(np.linalg.norm(d - (d @ a) * a)))
+    if not gaps:
+        return None
+    return {"median": float(np.median(gaps)), "max": float(np.max(gaps)), "n": len(gaps)}
+
 CONFIG_EFFECTIVE = "config.effective.yaml"
+DEFAULT_DIAMETER_HEIGHT_M = 0.30  # m, where trunk diameters are stated when the truth does not say
 
 
 def _rgb_only(result_dir: Path) -> bool:
@@ -227,6 +274,7 @@ def evaluate_result(
             fruit = None
 
     merge: MergeError | None = None
+    gaps: dict[str, float] | None = None
     if (result_dir / SIDE_MERGE_JSON).is_file():
         sm = read_side_merge(result_dir / SIDE_MERGE_JSON)
         T_back_world = np.linalg.inv(gt.sides["back"].T_world_odom)
@@ -235,6 +283,9 @@ def evaluate_result(
             merge = merge_error(sm.T_front_back, gt.T_front_back, bases)
         except AlignmentError as err:
             skipped["merge"] = str(err)
+        if (result_dir / TRUNKS_JSON).is_file():
+            gaps = _trunk_axis_gaps_mm(result_dir, sm, read_trunks(result_dir / TRUNKS_JSON),
+                                       gt.diameter_height_m or DEFAULT_DIAMETER_HEIGHT_M)
     else:
         skipped["merge"] = f"{SIDE_MERGE_JSON} absent"
 
@@ -286,4 +337,5 @@ def evaluate_result(
         skipped=skipped,
         trunks=trunks_e,
         grounds=grounds_e,
+        trunk_axis_gap_mm=gaps,
     )

@@ -139,6 +139,9 @@ class EvaluationReport:
     skipped: Mapping[str, str] = field(default_factory=dict)  # part -> reason
     trunks: Mapping[str, Any] = field(default_factory=dict)  # side -> eval.landmarks.TrunkErrors
     grounds: Mapping[str, Any] = field(default_factory=dict)  # side -> eval.landmarks.GroundErrors
+    # After the merge: distance between the two sides' axes of each paired trunk at the diameter height, in
+    # map (mm): {"median", "max", "n"}; None when there is no merge to measure.
+    trunk_axis_gap_mm: Mapping[str, float] | None = None
 
     def to_dict(self) -> dict[str, Any]:
         """JSON-serialisable; every key is always present (null where not evaluated)."""
@@ -151,7 +154,9 @@ class EvaluationReport:
             "traits": _plain(self.traits),
             "fruit_count": _plain(self.fruit_count),
             "double_count": _plain(self.double_count),
-            "merge": _plain(self.merge),
+            "merge": None if self.merge is None else {**_plain(self.merge),
+                                                      "trunk_axis_gap_mm": self.trunk_axis_gap_mm},
+            "trees": {"position_rmse_mm": None if self.matching is None else self.matching.position_rmse_mm},
             "sides": {name: _plain(err) for name, err in self.sides.items()},
             "trunks": {name: _plain(e) for name, e in self.trunks.items()},
             "grounds": {name: _plain(e) for name, e in self.grounds.items()},
@@ -233,6 +238,10 @@ class EvaluationReport:
                     f"mean over {g.n_points} trunk bases; max {_fmt(g.max_translation_error_mm, 1)} mm",
                 ),
             ]
+            gap = self.trunk_axis_gap_mm
+            if gap is not None:
+                rows.append(("trunk axis gap after the merge", _fmt(gap["median"], 1), "mm",
+                             f"median over {gap['n']} trunks seen from both sides; max {_fmt(gap['max'], 1)} mm"))
             if g.scale_error_percent is not None:
                 rows.append(("merge scale error", _fmt(g.scale_error_percent, 2, True), "%", f"scale {g.scale:.5f}"))
         for name, e in self.sides.items():

@@ -52,7 +52,9 @@ def trunk_to_json(lm: TrunkLandmark) -> dict[str, Any]:
     band = lm.band
     return {
         "id": lm.id,
-        "base": _vec(lm.base), "axis": _vec(lm.axis), "length_m": _num(lm.length_m, 4),
+        "base": _vec(lm.base), "axis": _vec(lm.axis),
+        "axis_cone": None if lm.merge_axis is None else _vec(lm.merge_axis), "taper": _num(lm.taper, 5),
+        "length_m": _num(lm.length_m, 4),
         "diameter_m": _num(lm.diameter_m),
         "diameter_3d_only_m": _num(2 * lm.baseline_band.cylinder.radius) if lm.baseline_band is not None else None,
         "band": None if band is None else {
@@ -101,6 +103,7 @@ class ResultTrunk:
     length_m: float
     stamps: np.ndarray  # (O,) s, the observations' stamps
     flags: tuple[str, ...]
+    axis_cone: np.ndarray | None = None  # (3,) unit, the whole trunk's axis with its taper modelled
 
 
 @dataclass(frozen=True)
@@ -147,7 +150,8 @@ def read_trunks(path: str | Path) -> list[ResultTrunk]:
             stamps=np.array([_number(_get(_mapping(o, path, f"{w}.observations[{k}]"), "stamp", path,
                                           f"{w}.observations[{k}]"), path, f"{w}.observations[{k}].stamp")
                              for k, o in enumerate(obs)], float),
-            flags=tuple(str(f) for f in t.get("flags", []))))
+            flags=tuple(str(f) for f in t.get("flags", [])),
+            axis_cone=None if t.get("axis_cone") is None else _array(t["axis_cone"], (3,), path, f"{w}.axis_cone")))
     return out
 
 

@@ -290,6 +290,9 @@ def test_the_sides_are_merged_on_their_shared_trunks(reconstructed_model, accura
         accuracy.at_most("paired trunk axes after the merge, deg", p["axis_deg"], 2.0)
         accuracy.at_most("back trunk axis point off the front axis, mm", p["line_mm"], 15.0)
     m = evaluate_result(sim / "ground_truth.json", out).to_dict()["merge"]
+    # the evaluator's own measure from the written files (trunks.json carried by the trajectories in map)
+    accuracy.at_most("evaluator: trunk axis gap after the merge (median), mm", m["trunk_axis_gap_mm"]["median"], 5.0)
+    accuracy.at_most("evaluator: trunk axis gap after the merge (max), mm", m["trunk_axis_gap_mm"]["max"], 15.0)
     accuracy.at_most("initial merge error at the trunk bases (max), mm", m["max_translation_error_mm"], 30.0)
     accuracy.at_most("initial merge rotation error, deg", m["rotation_error_deg"], 2.5)
     assert (out / "trajectory_back_map.tum").is_file()
