@@ -420,10 +420,15 @@ def align_sides(front: AlignmentSide, back: AlignmentSide, params: AlignmentPara
                 rng: np.random.Generator) -> SideAlignment:
     """Initial similarity odom_front <- odom_back and trunk pairs (module docstring)."""
     log: list[str] = []
-    cf = canonical_frame(front.points, front.poses, "front", params, rng)
-    cb = canonical_frame(back.points, back.poses, "back", params, rng)
-    Pf = np.asarray(front.points, float) @ cf.T_canon_odom[:3, :3].T + cf.T_canon_odom[:3, 3]
-    Pb = np.asarray(back.points, float) @ cb.T_canon_odom[:3, :3].T + cb.T_canon_odom[:3, 3]
+    # Every step below works on a grid no finer than the front view's cells: thinning the clouds to it
+    # once makes the alignment's cost follow the row's area, not its point count (30-tree row: the
+    # full clouds' transforms and cell sorts took 15 of 17 s).
+    thin_f = _voxel(np.asarray(front.points, float), params.view_cell_m)  # (Q, 3) odom_front
+    thin_b = _voxel(np.asarray(back.points, float), params.view_cell_m)
+    cf = canonical_frame(thin_f, front.poses, "front", params, rng)
+    cb = canonical_frame(thin_b, back.poses, "back", params, rng)
+    Pf = thin_f @ cf.T_canon_odom[:3, :3].T + cf.T_canon_odom[:3, 3]
+    Pb = thin_b @ cb.T_canon_odom[:3, :3].T + cb.T_canon_odom[:3, 3]
     tf = _trunk_points(front, cf.T_canon_odom, params.trunk_height_m)
     tb = _trunk_points(back, cb.T_canon_odom, params.trunk_height_m)
     zf = float(np.median(tf[:, 2])) if len(tf) else float(np.median(Pf[:, 2]))
