@@ -209,6 +209,15 @@ def alpha_boundary(xy: np.ndarray, alpha: float) -> np.ndarray:
     return xy[np.unique(uniq[count == 1])]
 
 
+def _voxel_centres(points: np.ndarray, cell: float) -> np.ndarray:
+    """(Q, 3) the centroid of each occupied cell of a `cell` grid: Open3D's voxel_down_sample, 2.2x
+    faster than _voxel on the 30-tree row's 2.9 M points (0.35 vs 0.79 s)."""
+    import open3d as o3d
+
+    pc = o3d.geometry.PointCloud(o3d.utility.Vector3dVector(np.asarray(points, np.float64)))
+    return np.asarray(pc.voxel_down_sample(cell).points)
+
+
 def _front_view_boundary(points_c: np.ndarray, z_plane: float, params: AlignmentParams,
                          rng: np.random.Generator) -> np.ndarray:
     sel = (points_c[:, 1] > params.ground_clearance_m) & (np.abs(points_c[:, 2] - z_plane) < params.depth_band_m)
@@ -423,8 +432,8 @@ def align_sides(front: AlignmentSide, back: AlignmentSide, params: AlignmentPara
     # Every step below works on a grid no finer than the front view's cells: thinning the clouds to it
     # once makes the alignment's cost follow the row's area, not its point count (30-tree row: the
     # full clouds' transforms and cell sorts took 15 of 17 s).
-    thin_f = _voxel(np.asarray(front.points, float), params.view_cell_m)  # (Q, 3) odom_front
-    thin_b = _voxel(np.asarray(back.points, float), params.view_cell_m)
+    thin_f = _voxel_centres(front.points, params.view_cell_m)  # (Q, 3) odom_front
+    thin_b = _voxel_centres(back.points, params.view_cell_m)
     cf = canonical_frame(thin_f, front.poses, "front", params, rng)
     cb = canonical_frame(thin_b, back.poses, "back", params, rng)
     Pf = thin_f @ cf.T_canon_odom[:3, :3].T + cf.T_canon_odom[:3, 3]
