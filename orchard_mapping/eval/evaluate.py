@@ -12,7 +12,7 @@ from pathlib import Path
 import numpy as np
 import yaml
 
-from orchard_mapping.core.geometry import move_with_keyframes, quat_to_matrix, transform_points, umeyama
+from orchard_mapping.core.geometry import move_with_keyframes, pose_matrices, transform_points, umeyama
 from orchard_mapping.errors import AlignmentError, ResultFormatError
 from orchard_mapping.eval.ground_truth import GroundTruth, load_ground_truth
 from orchard_mapping.eval.metrics import (
@@ -54,10 +54,7 @@ __all__ = ["evaluate_result"]
 def _keyframe_poses(path: Path) -> tuple[np.ndarray, np.ndarray]:
     """(stamps (K,), poses (K, 4, 4)) of a TUM file."""
     tr = read_tum(path)
-    T = np.tile(np.eye(4), (len(tr.stamps), 1, 1))
-    T[:, :3, :3] = [quat_to_matrix(q) for q in tr.quaternions]
-    T[:, :3, 3] = tr.positions
-    return np.asarray(tr.stamps, float), T
+    return np.asarray(tr.stamps, float), pose_matrices(tr.positions, tr.quaternions)
 
 
 def _trunk_axis_gaps_mm(result_dir: Path, sm, trunks, height_m: float) -> dict[str, float] | None:

@@ -67,3 +67,25 @@ def test_rotation_angle_and_path_length() -> None:
     assert path_length(np.zeros((1, 3))) == 0.0
     with pytest.raises(ValueError):
         decompose_similarity(np.diag([1.0, 1.0, -1.0, 1.0]))
+
+
+def test_points_move_with_their_nearest_keyframe():
+    """A side bent by the merge: each point follows the keyframe whose camera is nearest (the cloud of
+    merged.ply and the evaluator's trunk axes), and an unmoved side stays where it was."""
+    from orchard_mapping.core.geometry import make_transform, move_with_keyframes
+
+    rng = np.random.default_rng(0)
+    before = np.stack([make_transform(np.eye(3), np.array([x, 0.0, 0.0])) for x in (0.0, 5.0, 10.0)])
+    pts = np.concatenate([c + rng.normal(0, 0.5, (50, 3)) for c in before[:, :3, 3]])  # (150, 3) near each camera
+    assert np.allclose(move_with_keyframes(pts, before, before), pts)
+    lift = np.array([0.0, 0.0, 0.01])  # the last keyframe 1 cm up, the middle one turned 90 deg about z
+    Rz = np.array([[0.0, -1.0, 0.0], [1.0, 0.0, 0.0], [0.0, 0.0, 1.0]])
+    after = before.copy()
+    after[2, :3, 3] += lift
+    after[1, :3, :3] = Rz
+    moved = move_with_keyframes(pts, before, after)
+    assert np.allclose(moved[:50], pts[:50])
+    assert np.allclose(moved[100:], pts[100:] + lift)
+    c = before[1, :3, 3]
+    assert np.allclose(moved[50:100], (pts[50:100] - c) @ Rz.T + c)  # turned about its own camera
+    assert move_with_keyframes(np.zeros((0, 3)), before, after).shape == (0, 3)
