@@ -160,20 +160,47 @@ def _linear_system(pairs: list[SemanticPair], prior: HeightPrior | None, mp: Mer
     return np.asarray(rows), np.asarray(rhs)
 
 
-def _residuals(R: np.ndarray, t: np.ndarray, pairs: list[SemanticPair], mp: MergeParams,
+def _residuals(R: np.ndarray, t: np.ndarray, A: "_PairArrays", mp: MergeParams,
                prior: HeightPrior | None = None) -> np.ndarray:
-    """Sigma-scaled residuals of constraints 1-3, pair by pair: 3 + 3 (+ 3 + 1 with grounds) each, then
-    the height prior's one."""
-    out = []
-    for p in pairs:
-        out.append((R @ p.axis_b - p.axis_f) / mp.sigma_axis_rad)
-        out.append(np.cross(p.axis_f, R @ p.origin_b + t - p.origin_f) / mp.sigma_line_m)
-        if p.ground_f is not None and p.ground_b is not None:
-            out.append((R @ p.ground_b[0] - p.ground_f[0]) / mp.sigma_normal_rad)
-            out.append(np.atleast_1d(p.ground_f[0] @ (R @ p.ground_b[1] + t - p.ground_f[1])) / p.plane_sigma_m(mp))
+    """Sigma-scaled residuals of constraints 1-3: every pair's axis (3) and line (3), then the grounds'
+    normal (3) and plane (1) of the pairs with grounds, then the height prior's one. Vectorised over the
+    pairs (LM evaluates this a few hundred times: a loop over 100 pairs took 1.4 s of a 100-tree merge)."""
+    out = [((A.axis_b @ R.T - A.axis_f) / mp.sigma_axis_rad).ravel(),
+           (np.cross(A.axis_f, A.origin_b @ R.T + t - A.origin_f) / mp.sigma_line_m).ravel()]
+    if len(A.g_nf):
+        out.append(((A.g_nb @ R.T - A.g_nf) / mp.sigma_normal_rad).ravel())
+        out.append(np.einsum("ij,ij->i", A.g_nf, A.g_pb @ R.T + t - A.g_pf) / A.g_sigma)
     if prior is not None:
         out.append(np.atleast_1d(prior.up @ (R @ prior.point_b + t - prior.target_f)) / mp.sigma_alignment_height_m)
     return np.concatenate(out)
+
+
+@dataclass(frozen=True)
+class _PairArrays:
+    """The pairs' vectors stacked (P, 3), once per initial transform."""
+
+    axis_f: np.ndarray
+    axis_b: np.ndarray
+    origin_f: np.ndarray
+    origin_b: np.ndarray
+    g_nf: np.ndarray  # (G, 3) the pairs with grounds on both sides
+    g_nb: np.ndarray
+    g_pf: np.ndarray
+    g_pb: np.ndarray
+    g_sigma: np.ndarray  # (G,) m, SemanticPair.plane_sigma_m
+
+    @classmethod
+    def of(cls, pairs: list[SemanticPair], mp: MergeParams) -> "_PairArrays":
+        g = [p for p in pairs if p.ground_f is not None and p.ground_b is not None]
+
+        def stack(vs: list[np.ndarray]) -> np.ndarray:
+            return np.asarray(vs, float).reshape(-1, 3)
+
+        return cls(stack([p.axis_f for p in pairs]), stack([p.axis_b for p in pairs]),
+                   stack([p.origin_f for p in pairs]), stack([p.origin_b for p in pairs]),
+                   stack([p.ground_f[0] for p in g]), stack([p.ground_b[0] for p in g]),
+                   stack([p.ground_f[1] for p in g]), stack([p.ground_b[1] for p in g]),
+                   np.array([p.plane_sigma_m(mp) for p in g], float))
 
 
 def _huber_cost(r: np.ndarray, k: float) -> float:
@@ -200,10 +227,11 @@ def initial_transform(pairs: list[SemanticPair], params: MergeParams,
     # With R fixed at its nearest rotation, t again by least squares on the translation columns.
     resid_b = b - A[:, :9] @ R0.T.reshape(-1)
     t0, *_ = np.linalg.lstsq(A[:, 9:], resid_b, rcond=None)
-    cost0 = _huber_cost(_residuals(R0, t0, pairs, params, height_prior), params.huber_k)
+    arrays = _PairArrays.of(pairs, params)
+    cost0 = _huber_cost(_residuals(R0, t0, arrays, params, height_prior), params.huber_k)
 
     def fun(z: np.ndarray) -> np.ndarray:
-        return _residuals(Rotation.from_rotvec(z[:3]).as_matrix() @ R0, z[3:], pairs, params, height_prior)
+        return _residuals(Rotation.from_rotvec(z[:3]).as_matrix() @ R0, z[3:], arrays, params, height_prior)
 
     sol = least_squares(fun, np.concatenate([np.zeros(3), t0]), loss="huber", f_scale=params.huber_k,
                         method="trf", x_scale=[0.01, 0.01, 0.01, 0.01, 0.01, 0.01])
@@ -219,4 +247,4 @@ def initial_transform(pairs: list[SemanticPair], params: MergeParams,
             gm = float(1000 * abs(p.ground_f[0] @ (R @ p.ground_b[1] + t - p.ground_f[1])))
         res.append(PairResidual(p.front_id, p.back_id, a, 1000 * line, gd, gm))
     return InitialTransform(make_transform(R, t), tuple(res), make_transform(R0, t0), cost0,
-                            _huber_cost(_residuals(R, t, pairs, params, height_prior), params.huber_k))
+                            _huber_cost(_residuals(R, t, arrays, params, height_prior), params.huber_k))
