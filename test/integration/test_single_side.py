@@ -212,8 +212,8 @@ def loop_run(tmp_path_factory, seed_offset) -> tuple[Path, dict]:
     sim = _simulate(root, "loop", SEED + seed_offset)
     out = root / "result"
     # Each side on its own (merge.method=off): this row's merge is refused. On the front side the shipped
-    # detector's first trunk is another object (its base 0.45 m from the true tree, a 98 mm 3D fit against
-    # 74 mm), so only one tree is seen from both sides: `run` says so and exits 2 (the detector issue).
+    # detector takes the trellis post 0.47 m before tree 0 for a trunk and misses tree 0 (a 98 mm fit; the
+    # tree is 74 mm), so only one tree is seen from both sides: `run` says so and exits 2 (detector issue).
     res = CliRunner().invoke(app, ["run", str(sim / "loop"), "--out", str(out), "--set", "merge.method=off"])
     assert res.exit_code == 0, res.output
     res = CliRunner().invoke(app, ["evaluate", "--truth", str(sim / "ground_truth.json"), "--result", str(out),
