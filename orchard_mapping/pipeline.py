@@ -317,6 +317,10 @@ def merge_sides(front: SideMap, back: SideMap, cfg: OrchardConfig) -> MergeOutco
                              np.array([_merge_axis(x) for x in t]).reshape(-1, 3), np.array([x.id for x in t], int),
                              sm.scale_free, np.array([np.nan if x.diameter_m is None else x.diameter_m for x in t]))
 
+    if len(front.keyframe_stamps) == len(back.keyframe_stamps) and np.array_equal(front.keyframe_stamps,
+                                                                                 back.keyframe_stamps):
+        raise AlignmentError("the two sides are one recording (the same keyframe stamps): a merge needs one "
+                             "recording of each side of the row")
     rng = np.random.default_rng(cfg.seed)
     t0 = time.perf_counter()
     fa, ba = side_input(front), side_input(back)

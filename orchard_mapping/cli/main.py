@@ -33,7 +33,8 @@ def _fail(err: Exception) -> typer.Exit:
 
 
 def _parse_sets(sets: list[str]) -> dict[str, Any]:
-    """`key.sub=value` pairs; values parsed as YAML (numbers, lists, booleans)."""
+    """`key.sub=value` pairs; values parsed as YAML (numbers, lists, true/false). YAML 1.1's other
+    booleans (on/off, yes/no) stay words: `--set merge.method=off` means the method "off"."""
     import yaml
 
     out: dict[str, Any] = {}
@@ -41,8 +42,12 @@ def _parse_sets(sets: list[str]) -> dict[str, Any]:
         if "=" not in item:
             raise typer.BadParameter(f"--set expects key=value, got '{item}'")
         key, value = item.split("=", 1)
-        out[key.strip()] = yaml.safe_load(value)
+        word = value.strip()
+        out[key.strip()] = word if word.lower() in YAML_WORD_BOOLEANS else yaml.safe_load(value)
     return out
+
+
+YAML_WORD_BOOLEANS = ("on", "off", "yes", "no", "y", "n")
 
 
 @app.callback()

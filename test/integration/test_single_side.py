@@ -309,7 +309,7 @@ def test_the_sides_are_merged_on_their_shared_trunks(reconstructed_model, accura
 
 def test_swapped_sides_merge_correctly_and_one_side_twice_is_refused(reconstructed_model, accuracy):
     """Bad input: the back bag given as front and the front as back merge into the same row (the inverse
-    transform, as accurate); a side merged with itself is never a merge (refused, typed)."""
+    transform, as accurate); a side's map merged with itself is refused (typed)."""
     sim, out = reconstructed_model
     cfg = load_config()
     truth = json.loads((sim / "ground_truth.json").read_text())
@@ -322,8 +322,8 @@ def test_swapped_sides_merge_correctly_and_one_side_twice_is_refused(reconstruct
                           (swapped.T_front_back, np.linalg.inv(T_true), bases_f)):
         err = np.linalg.norm(pts @ (T[:3, :3] - T_ref[:3, :3]).T + T[:3, 3] - T_ref[:3, 3], axis=1)
         accuracy.at_most("merge error at the trunk bases, sides as given or swapped, mm", 1000 * err.max(), 30.0)
-    for side in ("front", "back"):
-        with pytest.raises(AlignmentError):
+    for side in ("front", "back"):  # (two different recordings of one side: see docs/merge.md)
+        with pytest.raises(AlignmentError, match="one recording"):
             merge_sides(_MODEL_SIDES[side], _MODEL_SIDES[side], cfg)
 
 
