@@ -7,6 +7,7 @@ values are `ConfigError`s naming the dotted key.
 
 from __future__ import annotations
 
+import re
 from pathlib import Path
 from typing import Any, Literal
 
@@ -96,9 +97,26 @@ def _deep_merge(base: dict[str, Any], over: dict[str, Any]) -> dict[str, Any]:
     return out
 
 
+class _Yaml12Loader(yaml.SafeLoader):
+    """Safe YAML whose booleans are YAML 1.2's, true and false only: `method: off` is the word "off"
+    (YAML 1.1 made it false, and the key then failed validation as not a string)."""
+
+
+_Yaml12Loader.yaml_implicit_resolvers = {
+    first: [r for r in resolvers if r[0] != "tag:yaml.org,2002:bool"]
+    for first, resolvers in yaml.SafeLoader.yaml_implicit_resolvers.items()}
+_Yaml12Loader.add_implicit_resolver("tag:yaml.org,2002:bool", re.compile(r"^(?:true|True|TRUE|false|False|FALSE)$"),
+                                    list("tTfF"))
+
+
+def parse_yaml(text: str) -> Any:
+    """YAML text as configuration files and `--set` values are read (booleans: true/false only)."""
+    return yaml.load(text, Loader=_Yaml12Loader)  # noqa: S506 (a SafeLoader subclass)
+
+
 def _read_yaml(path: Path) -> dict[str, Any]:
     try:
-        data = yaml.safe_load(path.read_text())
+        data = parse_yaml(path.read_text())
     except FileNotFoundError as err:
         raise ConfigError(f"configuration file not found: {path}") from err
     except yaml.YAMLError as err:

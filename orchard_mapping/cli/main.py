@@ -33,21 +33,17 @@ def _fail(err: Exception) -> typer.Exit:
 
 
 def _parse_sets(sets: list[str]) -> dict[str, Any]:
-    """`key.sub=value` pairs; values parsed as YAML (numbers, lists, true/false). YAML 1.1's other
-    booleans (on/off, yes/no) stay words: `--set merge.method=off` means the method "off"."""
-    import yaml
+    """`key.sub=value` pairs; values parsed as YAML as the configuration files are (numbers, lists,
+    true/false; on/off and yes/no stay words: `--set merge.method=off` is the method "off")."""
+    from orchard_mapping.config import parse_yaml
 
     out: dict[str, Any] = {}
     for item in sets:
         if "=" not in item:
             raise typer.BadParameter(f"--set expects key=value, got '{item}'")
         key, value = item.split("=", 1)
-        word = value.strip()
-        out[key.strip()] = word if word.lower() in YAML_WORD_BOOLEANS else yaml.safe_load(value)
+        out[key.strip()] = parse_yaml(value)
     return out
-
-
-YAML_WORD_BOOLEANS = ("on", "off", "yes", "no", "y", "n")
 
 
 @app.callback()

@@ -87,3 +87,10 @@ def test_set_keeps_on_off_yes_no_as_words():
     sets = _parse_sets(["merge.method=off", "trunks.source=masks", "seed=3", "fusion.keep_color=true"])
     assert sets == {"merge.method": "off", "trunks.source": "masks", "seed": 3, "fusion.keep_color": True}
     assert load_config(overrides=unflatten(_parse_sets(["merge.method=off"]))).merge.method == "off"
+
+
+def test_off_in_a_config_file_is_the_word(tmp_path):
+    f = tmp_path / "mine.yaml"
+    f.write_text("merge:\n  method: off\ntrunks:\n  source: off\n")
+    cfg = load_config(f)
+    assert cfg.merge.method == "off" and cfg.trunks.source == "off"
