@@ -35,9 +35,9 @@ from rich.console import Console  # noqa: E402
 from rich.table import Table  # noqa: E402
 
 from orchard_mapping.config import load_config  # noqa: E402
-from orchard_mapping.core.geometry import transform_points, umeyama  # noqa: E402
+from orchard_mapping.core.geometry import transform_points  # noqa: E402
 from orchard_mapping.eval.ground_truth import load_ground_truth  # noqa: E402
-from orchard_mapping.eval.metrics import merge_error  # noqa: E402
+from orchard_mapping.eval.metrics import merge_error, rigid_rmse_mm  # noqa: E402
 from orchard_mapping.pipeline import Timings, merge_sides, open_sides, reconstruct_side, two_side_trees  # noqa: E402
 from orchard_mapping.sim.scenario import load_scenario  # noqa: E402
 from orchard_mapping.sim.simulate import simulate  # noqa: E402
@@ -153,10 +153,7 @@ def _score(method: str, sides: dict[str, Any], gt: Any) -> dict[str, Any]:
     near = np.argmin(np.linalg.norm(est[:, None] - true_xyz[None], axis=2), axis=1) if len(est) else np.zeros(0, int)
     dist = np.linalg.norm(est - true_xyz[near], axis=1) if len(est) else np.zeros(0)
     ok = dist < 0.3
-    rmse = None
-    if ok.sum() >= 3:
-        S = umeyama(est[ok], true_xyz[near[ok]])
-        rmse = float(1000 * np.sqrt(np.mean(np.sum((est[ok] @ (S.s * S.R).T + S.t - true_xyz[near[ok]]) ** 2, 1))))
+    rmse = rigid_rmse_mm(est[ok], true_xyz[near[ok]])
     d_err = [1000 * (t.trunk_diameter_m - gt.trees[k].diameter_m) for t, k, o in zip(trees, near, ok)
              if o and t.trunk_diameter_m is not None]
     gaps = m.sba.gaps_after_mm if m.sba is not None else None

@@ -6,8 +6,6 @@ only the CLI maps them to messages and exit codes.
 
 from __future__ import annotations
 
-from pathlib import Path
-
 
 class OrchardMappingError(Exception):
     """Base of every error this package raises on purpose."""
@@ -65,8 +63,4 @@ class AlignmentError(OrchardMappingError):
 
 class MergeRefusedError(AlignmentError):
     """`orchard-map run` could not merge the two sides. Each side's own results (trajectories, clouds,
-    trunks, grounds) were written to `out`; nothing of the merge was (no side_merge.json, no trees in map)."""
-
-    def __init__(self, message: str, out: Path | None = None):
-        super().__init__(message)
-        self.out = out
+    trunks, grounds) were written; nothing of the merge was (no side_merge.json, no trees in map)."""

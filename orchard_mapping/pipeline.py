@@ -37,7 +37,8 @@ from orchard_mapping.errors import AlignmentError, BagError, BagFormatError, Mer
 from orchard_mapping.io.bags import RGBDSequence, read_rgbd
 from orchard_mapping.io.figures import RowView, write_row_png
 from orchard_mapping.io.landmarks import GROUNDS_JSON, TRUNKS_JSON, write_grounds, write_trunks
-from orchard_mapping.io.results import (ResultTree, atomic_write_text, write_side_merge, write_timings, write_trees,
+from orchard_mapping.io.results import (SIDE_MERGE_JSON, TREES_CSV, TREES_JSON, ResultTree, atomic_write_text,
+                                       map_trajectory_filename, write_side_merge, write_timings, write_trees,
                                        write_tum)
 
 log = logging.getLogger(__name__)
@@ -58,7 +59,7 @@ class Timings:
 
 # What a merge writes into the result folder (docs/results.md).
 MERGED_PLY, ROW_PNG = "merged.ply", "row.png"
-MERGE_OUTPUTS = ("side_merge.json", "trees.json", "trees.csv", "trajectory_*_map.tum", MERGED_PLY, ROW_PNG)
+MERGE_OUTPUTS = (SIDE_MERGE_JSON, TREES_JSON, TREES_CSV, map_trajectory_filename("*"), MERGED_PLY, ROW_PNG)
 
 
 @dataclass(frozen=True)
@@ -76,13 +77,13 @@ def open_sides(front: Path, back: Path | None, cfg: OrchardConfig) -> dict[str, 
     if back is not None:
         if Path(front).resolve() == Path(back).resolve():
             raise BagError("the front and the back bag are the same file: a merge needs one recording of "
-                                 "each side of the row", bag=str(back))
+                           "each side of the row", bag=str(back))
         seqs = {"front": read_rgbd(front, inp.topics, **kw), "back": read_rgbd(back, inp.topics, **kw)}
         if np.array_equal(seqs["front"].stamps, seqs["back"].stamps):
             # a copy of one recording: merged with itself, a side would be mirrored onto the other
             raise BagError(f"the front and the back bag hold the same recording (the same "
-                                 f"{len(seqs['front'].stamps)} frame stamps as {front}): a merge needs one "
-                                 "recording of each side of the row", bag=str(back))
+                           f"{len(seqs['front'].stamps)} frame stamps as {front}): a merge needs one "
+                           "recording of each side of the row", bag=str(back))
         return seqs
     seq = read_rgbd(front, inp.topics, **kw)
     labels = set(seq.sides) - {""}
@@ -225,8 +226,13 @@ def write_cloud(path: Path, points: np.ndarray, colors: np.ndarray) -> None:
 
     pc = o3d.geometry.PointCloud(o3d.utility.Vector3dVector(points.astype(np.float64)))
     pc.colors = o3d.utility.Vector3dVector(colors.astype(np.float64) / 255.0)
+    _write_ply_atomically(path, lambda tmp: o3d.io.write_point_cloud(tmp, pc, write_ascii=False))
+
+
+def _write_ply_atomically(path: Path, write: Callable[[str], bool]) -> None:
+    """write(tmp) -> success into a temporary file beside `path`, then renamed onto it."""
     tmp = path.with_name(f".{path.stem}.partial.ply")
-    if not o3d.io.write_point_cloud(str(tmp), pc, write_ascii=False):
+    if not write(str(tmp)):
         tmp.unlink(missing_ok=True)
         raise OSError(f"could not write point cloud {path}")
     os.replace(tmp, path)
@@ -240,11 +246,7 @@ def write_labelled_cloud(path: Path, points: np.ndarray, colors: np.ndarray, sid
     pc.point.positions = o3d.core.Tensor(np.ascontiguousarray(points, np.float32))
     pc.point.colors = o3d.core.Tensor(np.ascontiguousarray(colors, np.uint8))
     pc.point.side = o3d.core.Tensor(np.ascontiguousarray(side, np.uint8).reshape(-1, 1))
-    tmp = path.with_name(f".{path.stem}.partial.ply")
-    if not o3d.t.io.write_point_cloud(str(tmp), pc, write_ascii=False):
-        tmp.unlink(missing_ok=True)
-        raise OSError(f"could not write point cloud {path}")
-    os.replace(tmp, path)
+    _write_ply_atomically(path, lambda tmp: o3d.t.io.write_point_cloud(tmp, pc, write_ascii=False))
 
 
 def _trajectory(stamps: np.ndarray, poses: np.ndarray, frame_id: str) -> StampedTrajectory:
@@ -279,6 +281,12 @@ class MergeOutcome:
     seconds: dict[str, float]  # per step: alignment, initial_transform, semantic_ba (or icp)
 
 
+def _ground_kind(lm: TrunkLandmark) -> int:
+    """What a trunk's foot stands on: 2 its local ground, 1 the wider ground (no local one), 0 neither
+    (its lowest visible point)."""
+    return 2 if lm.ground is not None else 1 if "diameter_height_from_wide_ground" in lm.flags else 0
+
+
 def _merge_axis(lm: TrunkLandmark) -> np.ndarray:
     """The trunk axis the merge uses: with the taper modelled when it was fitted (TrunkLandmark.merge_axis)."""
     return lm.merge_axis if lm.merge_axis is not None else lm.axis
@@ -304,7 +312,7 @@ def _trunk_shapes(sm: SideMap, ids: list[int], T_map_odom: np.ndarray, height_m:
             ground = np.array([*(R.T @ n), n @ t + lm.ground.offset])
         out.append(TrunkShape(tree, k, np.linalg.inv(T_map_cam) @ trunk_frame(origin_map, axis_map,
                                                                              np.array([1.0, 0.0, 0.0])), ground,
-                              grounded=lm.ground is not None or "diameter_height_from_wide_ground" in lm.flags))
+                              grounded=_ground_kind(lm) > 0))
     return out
 
 
@@ -317,8 +325,7 @@ def merge_sides(front: SideMap, back: SideMap, cfg: OrchardConfig) -> MergeOutco
                              np.array([_merge_axis(x) for x in t]).reshape(-1, 3), np.array([x.id for x in t], int),
                              sm.scale_free, np.array([np.nan if x.diameter_m is None else x.diameter_m for x in t]))
 
-    if len(front.keyframe_stamps) == len(back.keyframe_stamps) and np.array_equal(front.keyframe_stamps,
-                                                                                 back.keyframe_stamps):
+    if np.array_equal(front.keyframe_stamps, back.keyframe_stamps):
         raise AlignmentError("the two sides are one recording (the same keyframe stamps): a merge needs one "
                              "recording of each side of the row")
     rng = np.random.default_rng(cfg.seed)
@@ -347,7 +354,7 @@ def merge_sides(front: SideMap, back: SideMap, cfg: OrchardConfig) -> MergeOutco
     t0 = time.perf_counter()
     it = initial_transform(pairs, cfg.merge, prior)
     seconds["initial_transform"] = time.perf_counter() - t0
-    sba = None
+    sba = shapes = None
     if cfg.merge.method == "semantic_ba":
         t0 = time.perf_counter()
         h = cfg.trunks.diameter_height_m
@@ -356,17 +363,20 @@ def merge_sides(front: SideMap, back: SideMap, cfg: OrchardConfig) -> MergeOutco
                              _trunk_shapes(back, [j for _, j in al.pairs], it.T_front_back, h)))
         sba = semantic_bundle_adjust(*shapes, cfg.semantic_ba)
         seconds["semantic_ba"] = time.perf_counter() - t0
-        return MergeOutcome(cfg.merge.method, it.T_front_back, al.pairs, al, it, sba, shapes, seconds)
-    return MergeOutcome(cfg.merge.method, it.T_front_back, al.pairs, al, it, None, None, seconds)
+    return MergeOutcome(cfg.merge.method, it.T_front_back, al.pairs, al, it, sba, shapes, seconds)
+
+
+def _map_poses(m: MergeOutcome, sides: dict[str, SideMap]) -> dict[str, np.ndarray]:
+    """side -> (K, 4, 4) T_map_cam of its keyframes after the merge (the semantic BA's when it ran)."""
+    if m.sba is not None:
+        return {"front": m.sba.front_poses, "back": m.sba.back_poses}
+    return {"front": sides["front"].keyframe_poses, "back": m.T_front_back[None] @ sides["back"].keyframe_poses}
 
 
 def clouds_in_map(m: MergeOutcome, sides: dict[str, SideMap]) -> dict[str, np.ndarray]:
     """side -> (P, 3) its fused cloud in map, carried along with its keyframes by the merge."""
-    after = {"front": sides["front"].keyframe_poses, "back": m.T_front_back[None] @ sides["back"].keyframe_poses}
-    if m.sba is not None:
-        after = {"front": m.sba.front_poses, "back": m.sba.back_poses}
     return {side: move_with_keyframes(sides[side].cloud_points, sides[side].keyframe_poses, P)
-            for side, P in after.items()}
+            for side, P in _map_poses(m, sides).items()}
 
 
 # m: the union of both sides' points near a tree is cropped to this cube (half side) before the local
@@ -422,13 +432,12 @@ def two_side_trees(m: MergeOutcome, sides: dict[str, SideMap], cfg: OrchardConfi
                 sh = shapes.trunk(k)
                 Ts = poses[sh.keyframe] @ sh.T_cam_trunk
                 base_map = Ts[:3, 3] - tp.diameter_height_m * Ts[:3, 2]
-                kind = 2 if lm.ground is not None else 1 if "diameter_height_from_wide_ground" in lm.flags else 0
-                heights.append((kind, float((base_map - Tt[:3, 3]) @ z)))
-            best = max(k for k, _ in heights)
-            chosen = [hh for k, hh in heights if k == best]
+                heights.append((_ground_kind(lm), float((base_map - Tt[:3, 3]) @ z)))
+            best = max(kind for kind, _ in heights)
+            chosen = [hh for kind, hh in heights if kind == best]
             pos = Tt[:3, 3] + (float(np.mean(chosen)) if best else min(chosen)) * z
             r = max([t.diameter_m for t in (f, b) if t.diameter_m is not None] or [0.1]) / 2  # m; 0.1: a typical trunk
-            shared = _two_side_ground(clouds, Tt, pos, r, cfg, rng) if clouds is not None else None
+            shared = _two_side_ground(clouds, Tt, pos, r, cfg, rng)
             if shared is not None:
                 pos = shared.point
         else:
@@ -488,13 +497,11 @@ def write_merge(out: Path, m: MergeOutcome, sides: dict[str, SideMap],
                "pairs": len(m.pairs)}
     if al is not None:
         overlap["x_range_m"] = list(al.overlap_m)
-    write_side_merge(out / "side_merge.json", m.T_front_back, method=m.method, residuals=residuals,
+    write_side_merge(out / SIDE_MERGE_JSON, m.T_front_back, method=m.method, residuals=residuals,
                      overlap=overlap, alignment_log=al.log if al is not None else [], seconds=m.seconds, **extra)
-    poses = {"front": sides["front"].keyframe_poses, "back": m.T_front_back[None] @ sides["back"].keyframe_poses}
-    if sba is not None:
-        poses = {"front": sba.front_poses, "back": sba.back_poses}
+    poses = _map_poses(m, sides)
     for side, P in poses.items():  # (K, 4, 4) T_map_cam
-        write_tum(out / f"trajectory_{side}_map.tum", StampedTrajectory(
+        write_tum(out / map_trajectory_filename(side), StampedTrajectory(
             sides[side].keyframe_stamps, P[:, :3, 3], np.array([matrix_to_quat(R) for R in P[:, :3, :3]])))
     # merged.ply: each side's cloud carried along with its keyframes into map
     own = {"front": sides["front"].keyframe_poses, "back": sides["back"].keyframe_poses}
@@ -549,7 +556,7 @@ def run(front: str | Path, back: str | Path | None, out: str | Path, cfg: Orchar
         raise MergeRefusedError(
             f"the two sides were not merged: {result.merge_refused}. Each side's results (trajectories, "
             f"clouds, trunks.json) are in {out}; no side_merge.json and no trees in map were written. "
-            "Run with --set merge.method=off to reconstruct the sides without trying to merge them.", out)
+            "Run with --set merge.method=off to reconstruct the sides without trying to merge them.")
     return RunResult(out, result.sides, result.timings, result.merge_refused)
 
 

@@ -496,24 +496,27 @@ def icp_merge(front: AlignmentSide, back: AlignmentSide, params: AlignmentParams
     sides see different surfaces of every tree."""
     import open3d as o3d
 
-    cf = canonical_frame(front.points, front.poses, "front", params, rng)
-    cb = canonical_frame(back.points, back.poses, "back", params, rng)
+    # Each cloud thinned once to the canonical frame's grid (which then keeps every point of it).
+    thin_f = _voxel(np.asarray(front.points, float), params.voxel_m)  # (Q, 3) odom_front
+    thin_b = _voxel(np.asarray(back.points, float), params.voxel_m)
+    cf = canonical_frame(thin_f, front.poses, "front", params, rng)
+    cb = canonical_frame(thin_b, back.poses, "back", params, rng)
     # Generous to ICP: the clouds' medians above the ground brought together along the row and in depth.
     med = []
-    for side, c in ((front, cf), (back, cb)):
-        P = _voxel(np.asarray(side.points, float), params.voxel_m) @ c.T_canon_odom[:3, :3].T + c.T_canon_odom[:3, 3]
+    for thin, c in ((thin_f, cf), (thin_b, cb)):
+        P = thin @ c.T_canon_odom[:3, :3].T + c.T_canon_odom[:3, 3]
         med.append(np.median(P[P[:, 1] > params.ground_clearance_m], axis=0))
     shift = np.eye(4)
     shift[[0, 2], 3] = (med[0] - med[1])[[0, 2]]
     T0 = np.linalg.inv(cf.T_canon_odom) @ shift @ cb.T_canon_odom
 
     def cloud(points: np.ndarray) -> o3d.geometry.PointCloud:
-        pc = o3d.geometry.PointCloud(o3d.utility.Vector3dVector(_voxel(np.asarray(points, float), params.voxel_m)))
+        pc = o3d.geometry.PointCloud(o3d.utility.Vector3dVector(points))
         pc.estimate_normals(o3d.geometry.KDTreeSearchParamHybrid(radius=3 * params.voxel_m, max_nn=30))
         return pc
 
     res = o3d.pipelines.registration.registration_icp(
-        cloud(back.points), cloud(front.points), max_distance_m, T0,
+        cloud(thin_b), cloud(thin_f), max_distance_m, T0,
         o3d.pipelines.registration.TransformationEstimationPointToPlane(),
         o3d.pipelines.registration.ICPConvergenceCriteria(max_iteration=100))
     return np.asarray(res.transformation)

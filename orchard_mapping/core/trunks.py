@@ -271,7 +271,7 @@ def _band_rows_mask(det_mask: np.ndarray, depth: np.ndarray, intr: CameraIntrins
 
 
 def ground_around_trunk(points: np.ndarray, o_bottom: np.ndarray, trunk: Cylinder, ground_params: GroundParams,
-                   rng: np.random.Generator) -> LocalGroundFit | None:
+                        rng: np.random.Generator) -> LocalGroundFit | None:
     """The ground plane within ground_params.radius_m of the trunk axis (trunk prior, core.ground) from
     points (P, 3) odom; o_bottom (3,) the axis at the trunk's lowest point. The trunk's own surface
     (within TRUNK_SURFACE_M of the cylinder) is never ground."""
@@ -289,7 +289,8 @@ def _wide_ground(points: np.ndarray, o_bottom: np.ndarray, trunk: Cylinder, grou
     ground (the terrain within 0.5 m) and is not reported as one."""
     if ground_params.wide_radius_m <= ground_params.radius_m:
         return None
-    return ground_around_trunk(points, o_bottom, trunk, replace(ground_params, radius_m=ground_params.wide_radius_m), rng)
+    return ground_around_trunk(points, o_bottom, trunk, replace(ground_params, radius_m=ground_params.wide_radius_m),
+                               rng)
 
 
 def build_trunk_landmarks(points: np.ndarray, poses: np.ndarray, views: list[TrunkView], intr: CameraIntrinsics,

@@ -12,7 +12,7 @@ from pathlib import Path
 import numpy as np
 import yaml
 
-from orchard_mapping.core.geometry import move_with_keyframes, pose_matrices, transform_points, umeyama
+from orchard_mapping.core.geometry import move_with_keyframes, pose_matrices, transform_points
 from orchard_mapping.errors import AlignmentError, ResultFormatError
 from orchard_mapping.eval.ground_truth import GroundTruth, load_ground_truth
 from orchard_mapping.eval.metrics import (
@@ -22,6 +22,7 @@ from orchard_mapping.eval.metrics import (
     double_count,
     match_trees,
     merge_error,
+    rigid_rmse_mm,
     trajectory_error,
 )
 from orchard_mapping.eval.report import (
@@ -40,6 +41,7 @@ from orchard_mapping.io.results import (
     TREES_CSV,
     TREES_JSON,
     ResultTree,
+    map_trajectory_filename,
     read_side_merge,
     read_timings,
     read_trees,
@@ -49,6 +51,10 @@ from orchard_mapping.io.results import (
 )
 
 __all__ = ["evaluate_result"]
+
+
+CONFIG_EFFECTIVE = "config.effective.yaml"
+DEFAULT_DIAMETER_HEIGHT_M = 0.30  # m, where trunk diameters are stated when the truth does not say
 
 
 def _keyframe_poses(path: Path) -> tuple[np.ndarray, np.ndarray]:
@@ -65,7 +71,7 @@ def _trunk_axis_gaps_mm(result_dir: Path, sm, trunks, height_m: float) -> dict[s
     pairs = (sm.residuals or {}).get("pairs") or []
     frames = {}
     for side in ("front", "back"):
-        own, in_map = result_dir / trajectory_filename(side), result_dir / f"trajectory_{side}_map.tum"
+        own, in_map = result_dir / trajectory_filename(side), result_dir / map_trajectory_filename(side)
         if not (own.is_file() and in_map.is_file()):
             return None
         (s0, P0), (s1, P1) = _keyframe_poses(own), _keyframe_poses(in_map)
@@ -93,9 +99,6 @@ def _trunk_axis_gaps_mm(result_dir: Path, sm, trunks, height_m: float) -> dict[s
         return None
     return {"median": float(np.median(gaps)), "max": float(np.max(gaps)), "n": len(gaps)}
 
-CONFIG_EFFECTIVE = "config.effective.yaml"
-DEFAULT_DIAMETER_HEIGHT_M = 0.30  # m, where trunk diameters are stated when the truth does not say
-
 
 def _rgb_only(result_dir: Path) -> bool:
     """True if the run's effective configuration says `input.mode: rgb` (trajectories up to scale)."""
@@ -108,17 +111,6 @@ def _rgb_only(result_dir: Path) -> bool:
         raise ResultFormatError(f"{path}: not readable YAML: {err}") from err
     mode = cfg.get("input", {}).get("mode") if isinstance(cfg, dict) and isinstance(cfg.get("input"), dict) else None
     return mode == "rgb"
-
-
-def _rigid_rmse_mm(est: np.ndarray, true: np.ndarray) -> float | None:
-    """mm, RMS of |R est + t - true| after the best rigid alignment (Kabsch); None below 3 points."""
-    if len(est) < 3:
-        return None
-    try:
-        S = umeyama(est, true)
-    except AlignmentError:  # the estimates coincide
-        return None
-    return float(1000 * np.sqrt(np.mean(np.sum((est @ (S.s * S.R).T + S.t - true) ** 2, axis=1))))
 
 
 def _mean_or_none(v: np.ndarray) -> float | None:
@@ -157,7 +149,7 @@ def _trees_part(
         mean_distance_m=_mean_or_none(m.distance_m),
         missed_ids=tuple(gt.trees[i].id for i in m.missed.tolist()),
         false_ids=tuple(trees[j].id for j in m.false.tolist()),
-        position_rmse_mm=_rigid_rmse_mm(est_xyz[m.est_index], true_xyz[m.true_index]),
+        position_rmse_mm=rigid_rmse_mm(est_xyz[m.est_index], true_xyz[m.true_index]),
     )
 
     def diffs(true_attr: str, est_attr: str) -> tuple[np.ndarray, np.ndarray]:

@@ -32,6 +32,7 @@ __all__ = [
     "double_count",
     "match_trees",
     "merge_error",
+    "rigid_rmse_mm",
     "trajectory_error",
 ]
 
@@ -140,6 +141,17 @@ def merge_error(T_est: np.ndarray, T_true: np.ndarray, points_back: np.ndarray) 
         scale=float(est.s),
         scale_error_percent=None if rigid else 100.0 * (est.s - 1.0),
     )
+
+
+def rigid_rmse_mm(est: np.ndarray, true: np.ndarray) -> float | None:
+    """mm, RMS of |R est + t - true| after the best rigid alignment (Kabsch); None below 3 points."""
+    if len(est) < 3:
+        return None
+    try:
+        S = umeyama(est, true)
+    except AlignmentError:  # the estimates coincide
+        return None
+    return float(1000 * np.sqrt(np.mean(np.sum((est @ (S.s * S.R).T + S.t - true) ** 2, axis=1))))
 
 
 def associate_stamps(est_stamps: np.ndarray, true_stamps: np.ndarray, max_dt_s: float) -> tuple[np.ndarray, np.ndarray]:

@@ -48,6 +48,7 @@ __all__ = [
     "read_tum",
     "to_jsonable",
     "trajectory_filename",
+    "map_trajectory_filename",
     "write_side_merge",
     "write_timings",
     "write_trees",
@@ -87,6 +88,11 @@ _TREE_KEYS = {
 def trajectory_filename(side: str) -> str:
     """`trajectory_<side>.tum`."""
     return f"trajectory_{side}.tum"
+
+
+def map_trajectory_filename(side: str) -> str:
+    """`trajectory_<side>_map.tum`: the side's keyframes in `map` after the merge."""
+    return f"trajectory_{side}_map.tum"
 
 
 # ---------------------------------------------------------------- atomic writing
