@@ -76,14 +76,13 @@ def _tiled_side(sm: Any, copies: int, shift: np.ndarray, diameter_offset: np.nda
     apart by their diameters, as in a real row)."""
     K, n = len(sm.keyframe_poses), len(sm.trunks)
     dur = float(sm.keyframe_stamps[-1] - sm.keyframe_stamps[0]) + 1.0
-    poses, stamps, clouds, colours, trunks, depth = [], [], [], [], [], {}
+    poses, stamps, clouds, colours, trunks = [], [], [], [], []
     for c in range(copies):
         d = c * shift
         poses.append(_shift_transform(sm.keyframe_poses, d))
         stamps.append(sm.keyframe_stamps + c * dur)
         clouds.append(sm.cloud_points + d.astype(sm.cloud_points.dtype))
         colours.append(sm.cloud_colors)
-        depth.update({k + c * K: v for k, v in sm.cleaned_depth.items()})
         for t in sm.trunks:
             g = t.ground
             if g is not None:
@@ -100,7 +99,7 @@ def _tiled_side(sm: Any, copies: int, shift: np.ndarray, diameter_offset: np.nda
                 observations=[dataclasses.replace(o, keyframe=o.keyframe + c * K) for o in t.observations]))
     return dataclasses.replace(sm, keyframe_poses=np.concatenate(poses), keyframe_stamps=np.concatenate(stamps),
                                cloud_points=np.concatenate(clouds), cloud_colors=np.concatenate(colours),
-                               trunks=trunks, cleaned_depth=depth,
+                               trunks=trunks,
                                odometry_poses=None if sm.odometry_poses is None else np.concatenate(
                                    [_shift_transform(sm.odometry_poses, c * shift) for c in range(copies)]))
 

@@ -15,7 +15,7 @@ import tempfile
 import time
 from collections.abc import Iterator
 from collections.abc import Callable
-from dataclasses import asdict, dataclass, field
+from dataclasses import asdict, dataclass, field, replace
 from pathlib import Path
 
 import numpy as np
@@ -32,7 +32,8 @@ from orchard_mapping.core.semantic_ba import SemanticBAResult, SideShapes, Trunk
 from orchard_mapping.core.sidemap import FrontEndResult, LoopClosure, SideMap
 from orchard_mapping.core.cylinder import Cylinder
 from orchard_mapping.core.trunks import TrunkLandmark, TrunkView, build_trunk_landmarks, ground_around_trunk
-from orchard_mapping.core.types import RGBDFrame, StampedTrajectory
+from orchard_mapping.core.detection import CLASS_TRUNK
+from orchard_mapping.core.types import ImagePatch, RGBDFrame, StampedTrajectory
 from orchard_mapping.errors import AlignmentError, BagError, BagFormatError, MergeRefusedError
 from orchard_mapping.io.bags import RGBDSequence, read_rgbd
 from orchard_mapping.io.figures import RowView, write_row_png
@@ -147,18 +148,19 @@ def reconstruct_side(seq: RGBDSequence, side: str, cfg: OrchardConfig, timings: 
              len(fe.keyframes), ba.n_landmarks_used, ba.initial_error, ba.final_error, ba.iterations)
     points = np.zeros((0, 3), np.float32)
     colors = np.zeros((0, 3), np.uint8)
-    cleaned: dict[int, np.ndarray] = {}
     trunks: list[TrunkLandmark] = []
     stamps = np.array([k.stamp for k in fe.keyframes])
     if cfg.input.mode == "rgbd":
         t0 = time.perf_counter()
-        fused = fuse_keyframes(seq, side, labelled, [k.frame_index for k in fe.keyframes], ba.poses, cfg)
+        views = TrunkViews(cfg, side, stamps, ba.poses)
+        fused = fuse_keyframes(seq, side, labelled, [k.frame_index for k in fe.keyframes], ba.poses, cfg, views)
         points, colors = fused.points, fused.colors
-        cleaned = fused.cleaned_depth  # position among the fused frames = keyframe id (frames come in order)
-        timings.add(f"fusion_{side}", time.perf_counter() - t0)
+        timings.add(f"fusion_{side}", time.perf_counter() - t0 - views.seconds)
+        timings.add(f"trunk_detection_{side}", views.seconds)
         if cfg.trunks.source != "off":
             t0 = time.perf_counter()
-            trunks = model_trunks(fused, stamps, ba.poses, seq.intrinsics, side, cfg)
+            trunks = build_trunk_landmarks(points, ba.poses, views.views, seq.intrinsics, cfg.trunks, cfg.ground,
+                                           np.random.default_rng(cfg.seed))
             timings.add(f"trunks_{side}", time.perf_counter() - t0)
             if not trunks:
                 log.warning("%s: no trunk found (trunks.json lists none for this side)", side)
@@ -169,7 +171,6 @@ def reconstruct_side(seq: RGBDSequence, side: str, cfg: OrchardConfig, timings: 
         cloud_points=points, cloud_colors=colors,
         scale_free=cfg.input.mode == "rgb",
         odometry_poses=odometry,
-        cleaned_depth=cleaned,
         trunks=trunks,
     )
 
@@ -188,26 +189,48 @@ def trunk_detector(cfg: OrchardConfig, side: str):
     return lambda color, stamp: model.detect(color)
 
 
-def model_trunks(fused: FusionResult, stamps: np.ndarray, poses: np.ndarray, intr, side: str,
-                 cfg: OrchardConfig) -> list[TrunkLandmark]:
-    """Detect trunks on keyframes with cleaned depth spaced trunks.detect_every_m apart, then model them."""
-    detect = trunk_detector(cfg, side)
-    views: list[TrunkView] = []
-    last: np.ndarray | None = None
-    for k in sorted(fused.cleaned_depth):
-        c = poses[k][:3, 3]
-        if last is not None and np.linalg.norm(c - last) < cfg.trunks.detect_every_m - 1e-6:
-            continue
-        last = c
-        dets = detect(fused.cleaned_color.get(k), float(stamps[k]))
-        views.append(TrunkView(k, float(stamps[k]), poses[k], fused.cleaned_depth[k], dets))
-    return build_trunk_landmarks(fused.points, poses, views, intr, cfg.trunks, cfg.ground,
-                                 np.random.default_rng(cfg.seed))
+# px: a kept view holds its depth and masks this far around its trunk detections' boxes: the silhouette
+# terms look 8 px outside a mask and move its edges by up to trunks.edge_snap_px (core/cylinder.py).
+VIEW_MARGIN_PX = 24
+
+
+class TrunkViews:
+    """Receives each keyframe as fusion cleans it, gives those trunks.detect_every_m apart to the trunk detector
+    and keeps what trunk modelling and the two-side diameter need: pose, detections, and depth and masks
+    cropped around the trunk detections (ImagePatch). Frames are dropped as they go, so memory grows with
+    the trunks seen, not with the row's frames."""
+
+    def __init__(self, cfg: OrchardConfig, side: str, stamps: np.ndarray, poses: np.ndarray) -> None:
+        self.cfg, self.stamps, self.poses = cfg, stamps, poses
+        self.detect = trunk_detector(cfg, side) if cfg.trunks.source != "off" else None
+        self.views: list[TrunkView] = []
+        self.seconds = 0.0  # s spent in the detector and cropping
+        self._last: np.ndarray | None = None
+
+    def __call__(self, k: int, depth: np.ndarray, color: np.ndarray | None) -> None:
+        if self.detect is None:
+            return
+        c = self.poses[k][:3, 3]
+        if self._last is not None and np.linalg.norm(c - self._last) < self.cfg.trunks.detect_every_m - 1e-6:
+            return
+        self._last = c
+        t0 = time.perf_counter()
+        dets = [d for d in self.detect(color, float(self.stamps[k])) if d.class_id == CLASS_TRUNK]
+        if dets:
+            boxes = np.array([d.box for d in dets])  # (D, 4) x1 y1 x2 y2 px
+            m = VIEW_MARGIN_PX + self.cfg.trunks.edge_snap_px
+            rect = (int(np.floor(boxes[:, 1].min())) - m, int(np.floor(boxes[:, 0].min())) - m,
+                    int(np.ceil(boxes[:, 3].max())) + m, int(np.ceil(boxes[:, 2].max())) + m)
+            dets = [replace(d, mask=ImagePatch.crop(np.asarray(d.mask, bool), rect)) for d in dets]
+            self.views.append(TrunkView(k, float(self.stamps[k]), self.poses[k], ImagePatch.crop(depth, rect), dets))
+        self.seconds += time.perf_counter() - t0
 
 
 def fuse_keyframes(seq: RGBDSequence, side: str, labelled: bool, frame_index: list[int], poses: np.ndarray,
-                   cfg: OrchardConfig) -> FusionResult:
-    """TSDF fusion of the keyframes' depth with their optimised poses (a second pass over the bag)."""
+                   cfg: OrchardConfig, on_cleaned: Callable[[int, np.ndarray, np.ndarray | None], None] | None = None
+                   ) -> FusionResult:
+    """TSDF fusion of the keyframes' depth with their optimised poses (a second pass over the bag); each
+    cleaned keyframe (position among the keyframes = keyframe id) goes to on_cleaned as fusion moves on."""
     pose_of = dict(zip(frame_index, poses))
 
     def frames() -> Iterator[tuple[np.ndarray, np.ndarray, np.ndarray]]:
@@ -217,7 +240,7 @@ def fuse_keyframes(seq: RGBDSequence, side: str, labelled: bool, frame_index: li
 
     # the trunk detector needs the colour of the cleaned keyframes; without it, they are not kept
     return fuse_side(frames(), seq.intrinsics, keyframes=None, keep_color=cfg.trunks.source == "model",
-                     **asdict(cfg.fusion))
+                     on_cleaned=on_cleaned, **asdict(cfg.fusion))
 
 
 def write_cloud(path: Path, points: np.ndarray, colors: np.ndarray) -> None:

@@ -31,7 +31,7 @@ from __future__ import annotations
 
 import logging
 import time
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 from typing import Literal, Sequence
 
 import gtsam
@@ -44,6 +44,7 @@ from orchard_mapping.errors import OrchardMappingError
 
 __all__ = [
     "BAResult",
+    "bundle_adjust_windowed",
     "ReconstructionError",
     "bundle_adjust",
     "default_disparity_sigma",
@@ -315,6 +316,7 @@ def bundle_adjust(
     min_observations: int = 2,
     relative_error_tol: float = 1e-5,
     scale_anchor: int | None = None,
+    hold: Sequence[int] = (),
 ) -> BAResult:
     """Global bundle adjustment, eq. (objectBA), with Huber on every term.
 
@@ -331,6 +333,8 @@ def bundle_adjust(
     stays determined. Loop closures enter as robust BetweenFactorPose3.
     scale_anchor (rgb): the keyframe whose distance to keyframe 0 keeps its initial value (the scale gauge);
     None = the keyframe farthest from keyframe 0.
+    hold (rgbd): keyframes held at their initial poses instead of keyframe 0 alone (the gauge of a window
+    continuing an adjusted part: `bundle_adjust_windowed`).
     """
     t0 = time.perf_counter()
     if mode not in ("rgbd", "rgb"):
@@ -397,7 +401,11 @@ def bundle_adjust(
             raise ReconstructionError(f"scale_anchor {scale_anchor} is not a keyframe other than 0 (0..{n_kf - 1})")
         if dist[scale_anchor] < 1e-6:
             raise ReconstructionError("RGB-only bundle adjustment: all keyframes at one position, scale undefined")
-    _add_gauge(graph, poses, mode, scale_anchor)
+    if hold and mode == "rgbd":
+        for k in hold:
+            graph.add(_gauge_prior(X(int(k)), poses[int(k)]))
+    else:
+        _add_gauge(graph, poses, mode, scale_anchor)
 
     # Keyframes the observations leave (nearly) undetermined are tied to the previous one.
     per_kf = np.bincount(kf, minlength=n_kf)  # (K,)
@@ -435,3 +443,85 @@ def bundle_adjust(
         n_landmarks_used=int(used_lm.sum()),
         seconds=seconds,
     )
+
+
+def bundle_adjust_windowed(
+    poses: np.ndarray,
+    landmarks: np.ndarray,
+    obs: Observations,
+    intr: CameraIntrinsics,
+    *,
+    window: int,
+    tail: int,
+    hold: int,
+    loops: Sequence[LoopClosure] = (),
+    **kw,
+) -> BAResult:
+    """`bundle_adjust` (rgbd) in windows of `window` consecutive keyframes, so memory does not grow with the row.
+
+    Each window holds its first `hold` keyframes, already final, at their adjusted poses (gauge and
+    continuity), and leaves its last `tail` keyframes to the next window, which starts from this one's
+    estimate of them: a keyframe is final once the keyframes after it that share landmarks with it are in
+    the same window (a landmark is seen over ~1.5 m of path, ~60 keyframes at 15 Hz). Keyframes after the
+    window start from the input poses moved rigidly with its last final keyframe. Loop closures within a
+    window enter its graph; one that spans windows is kept by a last pose graph over the adjusted
+    relative poses and the loops, which moves each keyframe's landmarks with it.
+    """
+    poses = _check_poses(poses)
+    landmarks = np.asarray(landmarks, dtype=float)
+    n_kf = len(poses)
+    if not (0 < hold and 0 <= tail and window > hold + tail):
+        raise ReconstructionError(f"windowed bundle adjustment needs 0 < hold and window > hold + tail, got "
+                                  f"window={window}, tail={tail}, hold={hold}")
+    if n_kf <= window:
+        return bundle_adjust(poses, landmarks, obs, intr, loops=loops, **kw)
+    t0 = time.perf_counter()
+    kf, lm, uv, depth = _check_observations(obs, n_kf, len(landmarks))
+    out = poses.copy()  # (K, 4, 4) final up to `done`, then the current estimate
+    out_lm = np.full_like(landmarks, np.nan)  # (L, 3)
+    e0 = e1 = 0.0
+    iters = n_factors = 0
+    a, done, last_b = 0, 0, 0
+    used_loops: set[int] = set()
+    while True:
+        b = min(n_kf, a + window)
+        init = out[a:b].copy()  # (W, 4, 4): final or estimated by the last window up to its end ...
+        if 0 < last_b < b:  # ... then the input poses carried along by the last estimated keyframe
+            init[last_b - a:] = out[last_b - 1] @ np.linalg.inv(poses[last_b - 1]) @ poses[last_b:b]
+        sel = (kf >= a) & (kf < b)  # (M,) observations in the window
+        ids, lm_local = np.unique(lm[sel], return_inverse=True)
+        lm_init = np.where(np.isfinite(out_lm[ids]), out_lm[ids], landmarks[ids])  # (L_w, 3)
+        # landmarks first estimated here follow the window's start correction
+        fresh = ~np.isfinite(out_lm[ids]).all(axis=1)
+        if a > 0:
+            C = out[a] @ np.linalg.inv(poses[a])
+            lm_init[fresh] = landmarks[ids[fresh]] @ C[:3, :3].T + C[:3, 3]
+        sub = Observations(kf[sel] - a, lm_local, uv[sel], depth[sel])
+        inside = [i for i, lc in enumerate(loops) if a <= lc.kf_a < b and a <= lc.kf_b < b]
+        used_loops.update(inside)
+        win_loops = [replace(loops[i], kf_a=loops[i].kf_a - a, kf_b=loops[i].kf_b - a) for i in inside]
+        res = bundle_adjust(init, lm_init, sub, intr, loops=win_loops, hold=range(done - a) if a else range(1), **kw)
+        out[max(done, a):b] = res.poses[max(done, a) - a:]
+        ok = np.isfinite(res.landmarks).all(axis=1)
+        out_lm[ids[ok]] = res.landmarks[ok]
+        e0, e1 = e0 + res.initial_error, e1 + res.final_error
+        iters, n_factors = max(iters, res.iterations), n_factors + res.n_factors
+        last_b = b
+        if b == n_kf:
+            break
+        done = b - tail
+        a = done - hold
+    spanning = [lc for i, lc in enumerate(loops) if i not in used_loops]
+    if spanning:  # the last pass over the reduced problem: keyframe poses only
+        before = out
+        out = optimise_pose_graph(out, spanning, loop_sigma_rot_deg=kw.get("loop_sigma_rot_deg", 1.0),
+                                  loop_sigma_trans_m=kw.get("loop_sigma_trans_m", 0.02))
+        first = np.full(len(landmarks), n_kf)
+        np.minimum.at(first, lm, kf)  # (L,) each landmark's first observing keyframe
+        ok = (first < n_kf) & np.isfinite(out_lm).all(axis=1)
+        M = out[first[ok]] @ np.linalg.inv(before[first[ok]])  # (n, 4, 4) how that keyframe moved
+        out_lm[ok] = np.einsum("nij,nj->ni", M[:, :3, :3], out_lm[ok]) + M[:, :3, 3]
+    seconds = time.perf_counter() - t0
+    logger.info("windowed bundle adjustment (%d keyframes, windows of %d): %.3f s", n_kf, window, seconds)
+    return BAResult(poses=out, landmarks=out_lm, initial_error=e0, final_error=e1, iterations=iters,
+                    n_factors=n_factors, n_landmarks_used=int(np.isfinite(out_lm).all(axis=1).sum()), seconds=seconds)

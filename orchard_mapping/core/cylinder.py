@@ -35,7 +35,7 @@ import numpy as np
 from scipy.optimize import least_squares
 
 from orchard_mapping.core.odometry import backproject
-from orchard_mapping.core.types import CameraIntrinsics
+from orchard_mapping.core.types import CameraIntrinsics, ImagePatch
 from orchard_mapping.errors import OrchardMappingError
 
 __all__ = [
@@ -82,8 +82,8 @@ class CylinderView:
     """One camera's view of a trunk segment: the detection mask and the cleaned depth of that frame."""
 
     T_odom_cam: np.ndarray  # (4, 4) camera pose
-    mask: np.ndarray  # (H, W) bool, the trunk's instance mask
-    depth: np.ndarray  # (H, W) float32 m, cleaned depth, 0 = none
+    mask: np.ndarray | ImagePatch  # (H, W) bool, the trunk's instance mask
+    depth: np.ndarray | ImagePatch  # (H, W) float32 m, cleaned depth, 0 = none
 
 
 @dataclass(frozen=True)

@@ -37,7 +37,7 @@ class Detection:
     class_id: int  # CLASS_TRUNK or CLASS_POST
     score: float  # 0..1
     box: np.ndarray  # (4,) float px: x1 y1 x2 y2
-    mask: np.ndarray  # (H, W) bool
+    mask: np.ndarray  # (H, W) bool (an ImagePatch of it once the pipeline keeps the detection: core.types)
 
     @staticmethod
     def from_mask(mask: np.ndarray, class_id: int, score: float = 1.0) -> "Detection":

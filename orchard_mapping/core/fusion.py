@@ -22,7 +22,7 @@ Open3D notes (0.20, measured; docs/dependencies.md):
 from __future__ import annotations
 
 import time
-from collections.abc import Iterable
+from collections.abc import Callable, Iterable
 from dataclasses import dataclass, field
 from typing import Literal
 
@@ -30,6 +30,7 @@ import cv2
 import numpy as np
 import open3d as o3d
 import open3d.core as o3c
+from scipy.spatial import cKDTree
 
 from orchard_mapping.core.types import CameraIntrinsics
 from orchard_mapping.errors import OrchardMappingError
@@ -63,6 +64,8 @@ DEFAULT_DEPTH_MAX_M = 3.0
 DEFAULT_BLOCK_RESOLUTION = 8
 DEFAULT_BLOCK_COUNT = 4000  # initial hash-map capacity; it grows on demand (~10 KB per 8^3 block)
 DEFAULT_MIN_WEIGHT = 2.0
+DEFAULT_CLEAN_AFTER_M = 2.0
+DEFAULT_CLEAN_BATCH_M = 4.0
 
 
 class FusionError(OrchardMappingError):
@@ -101,6 +104,19 @@ def _check_color(color: np.ndarray, intr: CameraIntrinsics, what: str) -> np.nda
     return color
 
 
+def _near_any(points: np.ndarray, centres: np.ndarray, radius: float) -> np.ndarray:
+    """(N,) bool: points (N, 3) within radius of any of centres (C, 3)."""
+    if len(centres) == 0 or len(points) == 0:
+        return np.zeros(len(points), bool)
+    return cKDTree(centres).query(points, distance_upper_bound=radius)[0] <= radius
+
+
+def _block_code(keys: np.ndarray) -> np.ndarray:
+    """(N,) int64, one number per block coordinate (N, 3) (each within +-2^20 blocks, +-84 km at 8 cm)."""
+    k = keys + (1 << 20)
+    return (k[:, 0] << 42) | (k[:, 1] << 21) | k[:, 2]
+
+
 class TsdfFusion:
     """A TSDF volume (Open3D `VoxelBlockGrid` on the CPU) fed with posed RGB-D frames."""
 
@@ -124,9 +140,12 @@ class TsdfFusion:
             attr_names=("tsdf", "weight", "color"), attr_dtypes=(o3c.float32, o3c.float32, o3c.float32),
             attr_channels=((1), (1), (3)), voxel_size=self.voxel_size_m, block_resolution=int(block_resolution),
             block_count=int(block_count), device=o3c.Device("CPU:0"))
+        self.block_m = self.voxel_size_m * int(block_resolution)  # m, edge of one block
         self._mesh_scene: o3d.t.geometry.RaycastingScene | None = None
         self._mesh_empty = False
+        self._scene_near: tuple[bytes, o3d.t.geometry.RaycastingScene | None] | None = None  # (key, scene)
         self.frames_integrated = 0
+        self.blocks_retired = 0
         self.seconds_integrating = 0.0
         u, v = np.meshgrid(np.arange(intr.width, dtype=np.float32), np.arange(intr.height, dtype=np.float32))
         # (HW, 3) camera rays with z = 1, so a ray's hit distance is the optical-axis depth.
@@ -148,8 +167,7 @@ class TsdfFusion:
         self._vbg.integrate(blocks, d_img, c_img, self._K, extrinsic, 1.0, self.depth_max_m, self._trunc_mult)
         self.seconds_integrating += time.perf_counter() - t0
         self.frames_integrated += 1
-        self._mesh_scene = None  # the surface changed: re-extract on the next ray cast
-        self._mesh_empty = False
+        self._surface_changed()
 
     def extract_point_cloud(self, weight_threshold: float | None = None) -> tuple[np.ndarray, np.ndarray]:
         """Surface points (P, 3) float32 m in odom and their colours (P, 3) uint8 RGB.
@@ -166,6 +184,11 @@ class TsdfFusion:
         cols = np.clip(pcd.point.colors.numpy() * 255.0 + 0.5, 0, 255).astype(np.uint8)  # (P, 3)
         return pts, cols
 
+    def _surface_changed(self) -> None:
+        self._mesh_scene = None  # re-extract on the next ray cast
+        self._mesh_empty = False
+        self._scene_near = None
+
     def _scene(self) -> o3d.t.geometry.RaycastingScene | None:
         if self._mesh_scene is None and not self._mesh_empty:
             mesh = self._vbg.extract_triangle_mesh(self.min_weight) if self._vbg.hashmap().size() else None
@@ -177,11 +200,64 @@ class TsdfFusion:
             self._mesh_scene = scene
         return self._mesh_scene
 
+    def focus(self, centres: np.ndarray | None) -> None:
+        """Ray casts until the next change see only the surface within depth_max + sdf_trunc of these camera
+        centres (C, 3) m, odom (None: all of it). Building the ray-casting index costs ~0.08 s per metre of
+        row (measured on a 30-tree row): a few metres around the cameras cost less than the whole volume."""
+        if centres is None:
+            self._scene_near = None
+            return
+        c = np.asarray(centres, np.float32).reshape(-1, 3)
+        if self._scene_near is not None and self._scene_near[0] == c.tobytes():
+            return
+        mesh = self._vbg.extract_triangle_mesh(self.min_weight) if self._vbg.hashmap().size() else None
+        scene = None
+        if mesh is not None and mesh.triangle.indices.shape[0]:
+            v = mesh.vertex.positions.numpy().astype(np.float32)  # (V, 3)
+            tri = mesh.triangle.indices.numpy()  # (T, 3)
+            reach = self.depth_max_m + self.sdf_trunc_m
+            near_v = _near_any(v, c, reach)  # (V,)
+            tri = tri[near_v[tri].any(axis=1)]
+            if len(tri):
+                scene = o3d.t.geometry.RaycastingScene()
+                scene.add_triangles(o3c.Tensor(v), o3c.Tensor(np.ascontiguousarray(tri, np.uint32)))
+        self._scene_near = (c.tobytes(), scene)
+
+    def retire_blocks(self, keep: np.ndarray, radius_m: float) -> tuple[np.ndarray, np.ndarray]:
+        """Free the blocks whose centres are farther than radius_m from every point of keep (C, 3) m, odom,
+        and return their surface points (P, 3) float32 and colours (P, 3) uint8 (as `extract_point_cloud`).
+
+        Nothing integrated later may reach a freed block (the caller keeps every camera that may still
+        see it), so its surface is final. A freed block's buffer slot is zeroed: Open3D reuses the slot
+        for the next new block without clearing it (measured: stale TSDF and weight came back)."""
+        hm = self._vbg.hashmap()
+        if hm.size() == 0:
+            return np.zeros((0, 3), np.float32), np.zeros((0, 3), np.uint8)
+        buf = hm.active_buf_indices().to(o3c.int64)  # (B,)
+        keys = hm.key_tensor()[buf].numpy()  # (B, 3) int32 block coordinates
+        far = ~_near_any((keys + 0.5) * self.block_m, np.asarray(keep, float).reshape(-1, 3), radius_m)  # (B,)
+        if not far.any():
+            return np.zeros((0, 3), np.float32), np.zeros((0, 3), np.uint8)
+        pts, cols = self.extract_point_cloud()
+        pk = np.floor(pts / self.block_m).astype(np.int64)  # (P, 3) block of each point
+        sel = np.isin(_block_code(pk), _block_code(keys[far].astype(np.int64)))
+        idx = buf.numpy()[far]
+        for name in ("tsdf", "weight", "color"):
+            self._vbg.attribute(name).numpy()[idx] = 0.0  # a numpy view of the grid's buffer
+        hm.erase(o3c.Tensor(np.ascontiguousarray(keys[far])))
+        self.blocks_retired += int(far.sum())
+        self._surface_changed()
+        return pts[sel], cols[sel]
+
+    @property
+    def n_blocks(self) -> int:
+        return int(self._vbg.hashmap().size())
+
     def raycast_depth(self, T_odom_cam: np.ndarray) -> np.ndarray:
         """Fused depth (H, W) float32 m seen from pose T_odom_cam; 0 where no fused surface (or beyond depth_max)."""
         T = _check_pose(T_odom_cam, "raycast")
         H, W = self.intr.height, self.intr.width
-        scene = self._scene()
+        scene = self._scene() if self._scene_near is None else self._scene_near[1]
         if scene is None:
             return np.zeros((H, W), np.float32)
         dirs = self._rays_cam @ T[:3, :3].T.astype(np.float32)  # (HW, 3) in odom
@@ -330,6 +406,8 @@ class FusionResult:
     mode: str  # "side" (one grid for the side) or "local" (a grid of the nearest frames per keyframe)
     # same keys: (H, W, 3) uint8 RGB, the trunk detector's input; only with keep_color (else empty)
     cleaned_color: dict[int, np.ndarray] = field(default_factory=dict)
+    peak_blocks: int = 0  # the most voxel blocks the volume held at once (~10 KB each)
+    blocks_retired: int = 0  # blocks extracted into the cloud and freed as the volume moved on
 
 
 def _nearest_frames(centres: np.ndarray, k: int, n: int) -> np.ndarray:
@@ -363,6 +441,16 @@ class FusionParams:
     # cleaned_spacing_m apart.
     fused_spacing_m: float = 0.1
     cleaned_spacing_m: float = 0.15
+    # m: a keyframe's depth is cleaned once the camera is this far past it, against the surface fused so far
+    # (frames farther ahead see only the far ground of its view), in batches clean_batch_m long: each batch
+    # extracts the volume's mesh once (~0.05 s per metre of volume) and indexes the part near its keyframes.
+    clean_after_m: float = DEFAULT_CLEAN_AFTER_M
+    clean_batch_m: float = DEFAULT_CLEAN_BATCH_M
+
+
+# Called with (keyframe position, cleaned depth (H, W) float32 m, colour (H, W, 3) uint8 or None) as soon as a
+# keyframe's depth is cleaned, so the caller can use it and let it go (the streaming pipeline).
+OnCleaned = Callable[[int, np.ndarray, "np.ndarray | None"], None]
 
 
 def fuse_side(frames: Iterable[tuple[np.ndarray, np.ndarray, np.ndarray]], intr: CameraIntrinsics, *,
@@ -372,21 +460,28 @@ def fuse_side(frames: Iterable[tuple[np.ndarray, np.ndarray, np.ndarray]], intr:
               rel_tol: float = DEFAULT_REL_TOL, abs_tol_m: float = DEFAULT_ABS_TOL_M,
               silhouette_tol_m: float = DEFAULT_SILHOUETTE_TOL_M, float_radius_m: float = DEFAULT_FLOAT_RADIUS_M,
               float_min_neighbours: int = DEFAULT_FLOAT_MIN_NEIGHBOURS, fused_spacing_m: float = 0.0,
-              cleaned_spacing_m: float = 0.0, keep_color: bool = False) -> FusionResult:
+              cleaned_spacing_m: float = 0.0, clean_after_m: float = DEFAULT_CLEAN_AFTER_M,
+              clean_batch_m: float = DEFAULT_CLEAN_BATCH_M, keep_color: bool = False,
+              on_cleaned: OnCleaned | None = None) -> FusionResult:
     """Fuse one side's frames (depth (H, W) m, colour (H, W, 3) uint8, T_odom_cam (4, 4)) and clean keyframe depth.
 
-    Every frame goes into one TSDF grid, whose surface is the side's cloud. The cleaned depth of a
+    The frames go into one TSDF volume, whose surface is the side's cloud. The cleaned depth of a
     keyframe is its raw depth checked against fused depth ray cast into it (`clean_depth`, with a
     lateral tolerance of silhouette_tol_m at 1 m), then freed of floating pixels
     (`remove_floating_pixels`); raw depth beyond depth_max_m is dropped (not fused, so not checked).
     The fused depth comes from
-      mode="side":  the whole side's grid (one integration per frame; the default), or
+      mode="side":  the side's volume (one integration per frame; the default). The volume moves with
+                    the camera: a keyframe is cleaned once the camera is clean_after_m past it (in batches
+                    clean_batch_m long), and blocks out of reach of the camera and of every keyframe not
+                    yet cleaned are extracted into the cloud and freed. Memory does not grow with the row.
       mode="local": as in the paper, a grid of the keyframe's `neighbours` nearest frames (by camera
-                    centre) per keyframe: `neighbours` integrations per keyframe.
+                    centre) per keyframe: `neighbours` integrations per keyframe (keeps every frame).
     keyframes: positions in `frames` to clean (None = every frame); of these only those at least
     cleaned_spacing_m (camera centres) after the previous cleaned one are cleaned (0 = all).
     fused_spacing_m: frames nearer than this to the last integrated one are not integrated (0 = all).
     keep_color: also keep the colour image of every cleaned keyframe (for the trunk detector; ~1 MB each).
+    on_cleaned: when given, each cleaned keyframe is handed to it (in order) instead of being kept in
+    the result (cleaned_depth and cleaned_color come back empty).
     """
     t_start = time.perf_counter()
     window_px = int(np.ceil(silhouette_tol_m * max(intr.fx, intr.fy) / 1.0))  # px at 1 m depth
@@ -394,56 +489,95 @@ def fuse_side(frames: Iterable[tuple[np.ndarray, np.ndarray, np.ndarray]], intr:
         raise FusionError(f"fuse_side: mode must be 'side' or 'local', got {mode!r}")
     if neighbours < 1:
         raise FusionError(f"fuse_side: neighbours must be >= 1, got {neighbours}")
+    if not (clean_after_m >= 0 and clean_batch_m > 0):
+        raise FusionError(f"fuse_side: need clean_after_m >= 0 and clean_batch_m > 0, got {clean_after_m}, "
+                          f"{clean_batch_m}")
 
     def new_grid() -> TsdfFusion:
         return TsdfFusion(intr, voxel_size_m=voxel_size_m, sdf_trunc_m=sdf_trunc_m, depth_max_m=depth_max_m,
                           min_weight=min_weight)
 
     side = new_grid()
+    # m: a block this far from a camera cannot be touched by its depth (nor hold surface it sees)
+    reach = depth_max_m + sdf_trunc_m + side.block_m * np.sqrt(3.0)
     key_set = None if keyframes is None else set(int(k) for k in keyframes)
     kept: list[tuple[np.ndarray, np.ndarray, np.ndarray]] = []  # frames held for local grids
-    raw_key: dict[int, np.ndarray] = {}  # keyframe -> checked raw depth
+    pending: list[tuple[int, np.ndarray, np.ndarray | None, np.ndarray]] = []  # keyframes to clean: (i, raw, colour, T)
+    cleaned: dict[int, np.ndarray] = {}
     color_key: dict[int, np.ndarray] = {}  # keyframe -> its colour image (keep_color)
+    chunks: list[tuple[np.ndarray, np.ndarray]] = []  # the cloud, extracted as the volume moves on
     poses: list[np.ndarray] = []
+    seconds = 0.0
+    frames_done = 0
+    peak = [0]  # the most blocks held at once
+
+    def emit(k: int, depth: np.ndarray, color: np.ndarray | None) -> None:
+        if on_cleaned is not None:
+            on_cleaned(k, depth, color)
+            return
+        cleaned[k] = depth
+        if color is not None:
+            color_key[k] = color
+
+    def clean(k: int, raw: np.ndarray, color: np.ndarray | None, fused: np.ndarray) -> None:
+        d = np.where(raw <= depth_max_m, raw, np.float32(0.0))
+        d = clean_depth(d, fused, rel_tol=rel_tol, abs_tol_m=abs_tol_m, window_px=window_px)
+        emit(k, remove_floating_pixels(d, intr, radius_m=float_radius_m, min_neighbours=float_min_neighbours),
+             color)
+
+    def flush(here: np.ndarray | None) -> None:
+        """Clean the keyframes clean_after_m behind `here` (all of them at the end: None), then free the blocks
+        no camera still needs."""
+        ready = [p for p in pending if here is None or np.linalg.norm(p[3][:3, 3] - here) >= clean_after_m]
+        if ready:
+            side.focus(np.array([p[3][:3, 3] for p in ready]))
+            for k, raw, color, T in ready:
+                clean(k, raw, color, side.raycast_depth(T))
+            side.focus(None)
+            del pending[:len(ready)]
+        if here is not None:
+            peak[0] = max(peak[0], side.n_blocks)
+            keep = np.array([here] + [p[3][:3, 3] for p in pending])
+            chunks.append(side.retire_blocks(keep, reach))
+
     last_cleaned: np.ndarray | None = None  # camera centre of the last frame kept for cleaning
     n = 0
     last_fused: np.ndarray | None = None  # camera centre of the last frame integrated into the side grid
     for i, (depth, color, T) in enumerate(frames):
         Tc = _check_pose(T, f"frame {i}")
-        if last_fused is None or np.linalg.norm(Tc[:3, 3] - last_fused) >= fused_spacing_m:
+        here = Tc[:3, 3]
+        if last_fused is None or np.linalg.norm(here - last_fused) >= fused_spacing_m:
             side.integrate(depth, color, Tc)
-            last_fused = Tc[:3, 3]
+            last_fused = here
         d = _check_depth(depth, intr, f"frame {i}")
         poses.append(Tc)
         if (key_set is None or i in key_set) and (
-                last_cleaned is None or np.linalg.norm(Tc[:3, 3] - last_cleaned) >= cleaned_spacing_m):
-            raw_key[i] = d
-            if keep_color:
-                color_key[i] = np.asarray(color)
-            last_cleaned = Tc[:3, 3]
+                last_cleaned is None or np.linalg.norm(here - last_cleaned) >= cleaned_spacing_m):
+            pending.append((i, d, np.asarray(color) if keep_color else None, Tc))
+            last_cleaned = here
         if mode == "local":
             kept.append((d, np.asarray(color), Tc))
+        elif pending and np.linalg.norm(pending[0][3][:3, 3] - here) >= clean_after_m + clean_batch_m:
+            flush(here)
         n = i + 1
     if key_set is not None and (missing := sorted(k for k in key_set if not 0 <= k < n)):
         raise FusionError(f"fuse_side: keyframes {missing[:5]} out of range 0..{n - 1}")
-    points, colors = side.extract_point_cloud()
-    seconds = side.seconds_integrating
-    frames_done = side.frames_integrated
-    centres = np.array([T[:3, 3] for T in poses]) if poses else np.zeros((0, 3))
-
-    cleaned: dict[int, np.ndarray] = {}
-    for k, raw in raw_key.items():
-        if mode == "side":
-            fused = side.raycast_depth(poses[k])
-        else:
+    if mode == "side":
+        flush(None)
+    peak[0] = max(peak[0], side.n_blocks)
+    chunks.append(side.extract_point_cloud())
+    points = np.concatenate([c[0] for c in chunks])
+    colors = np.concatenate([c[1] for c in chunks])
+    seconds += side.seconds_integrating
+    frames_done += side.frames_integrated
+    if mode == "local":
+        centres = np.array([T[:3, 3] for T in poses]) if poses else np.zeros((0, 3))
+        for k, raw, color, T in pending:
             local = new_grid()
             for j in _nearest_frames(centres, k, neighbours):
                 local.integrate(*kept[j])
             seconds += local.seconds_integrating
             frames_done += local.frames_integrated
-            fused = local.raycast_depth(poses[k])
-        d = np.where(raw <= depth_max_m, raw, np.float32(0.0))
-        d = clean_depth(d, fused, rel_tol=rel_tol, abs_tol_m=abs_tol_m, window_px=window_px)
-        cleaned[k] = remove_floating_pixels(d, intr, radius_m=float_radius_m, min_neighbours=float_min_neighbours)
+            clean(k, raw, color, local.raycast_depth(T))
     return FusionResult(points, colors, cleaned, seconds / max(1, frames_done), time.perf_counter() - t_start, mode,
-                        color_key)
+                        color_key, peak_blocks=peak[0], blocks_retired=side.blocks_retired)

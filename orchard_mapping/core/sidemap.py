@@ -81,7 +81,5 @@ class SideMap:
     cloud_colors: np.ndarray  # (P, 3) uint8 RGB
     scale_free: bool = False  # True in RGB-only mode: the map is up to an unknown scale
     odometry_poses: np.ndarray | None = None  # (K, 4, 4) front-end keyframe poses, before loop closure and BA
-    # keyframe id -> (H, W) float32 m, 0 = removed; for keyframes fusion.cleaned_spacing_m apart (not all)
-    cleaned_depth: dict[int, np.ndarray] = field(default_factory=dict)
     # trunk landmarks with their local grounds (core.trunks.TrunkLandmark), when trunks.source is not "off"
     trunks: list = field(default_factory=list)

@@ -35,7 +35,7 @@ from orchard_mapping.core.geometry import transform_points
 from orchard_mapping.core.detection import CLASS_TRUNK, Detection
 from orchard_mapping.core.ground import GroundParams, LocalGroundFit, fit_local_ground, ground_neighbourhood
 from orchard_mapping.core.odometry import backproject
-from orchard_mapping.core.types import CameraIntrinsics
+from orchard_mapping.core.types import CameraIntrinsics, ImagePatch
 from orchard_mapping.errors import OrchardMappingError
 
 __all__ = [
@@ -126,7 +126,7 @@ class TrunkView:
     keyframe: int  # keyframe id
     stamp: float  # s
     T_odom_cam: np.ndarray  # (4, 4)
-    depth: np.ndarray  # (H, W) float32 m, cleaned, 0 = none
+    depth: np.ndarray | ImagePatch  # (H, W) float32 m, cleaned, 0 = none (a patch: only around the detections)
     detections: list[Detection]
 
 
@@ -234,11 +234,19 @@ def _select_by_masks(points: np.ndarray, views: list[tuple[TrunkView, Detection]
         w[ok] = np.round(intr.fy * Xc[ok, 1] / z[ok] + intr.cy).astype(int)
         ok &= (u >= 0) & (u < intr.width) & (w >= 0) & (w < intr.height)
         idx = np.flatnonzero(ok)
-        inside = det.mask[w[idx], u[idx]]
-        d = v.depth[w[idx], u[idx]]
+        inside = np.asarray(det.mask)[w[idx], u[idx]]
+        d = np.asarray(v.depth)[w[idx], u[idx]]
         visible = (d <= 0) | (z[idx] <= d + tol)  # not behind what this frame saw at that pixel
         sel[idx[inside & visible]] = True
     return sel
+
+
+def _kept_like(mask: np.ndarray, ref: np.ndarray | ImagePatch) -> np.ndarray | ImagePatch:
+    """mask (H, W) kept as compactly as ref, a detection's mask (the same rectangle when ref is a patch)."""
+    if isinstance(ref, ImagePatch):
+        h, w = ref.data.shape[:2]
+        return ImagePatch.crop(mask, (ref.row0, ref.col0, ref.row0 + h, ref.col0 + w))
+    return mask
 
 
 def _normals(points: np.ndarray, radius: float = 0.02, knn: int = 20) -> np.ndarray:
@@ -312,7 +320,7 @@ def build_trunk_landmarks(points: np.ndarray, poses: np.ndarray, views: list[Tru
         for det in v.detections:
             if det.class_id != CLASS_TRUNK or int(det.mask.sum()) < params.min_mask_pixels:
                 continue
-            P = _backproject(v.depth, det.mask, intr, v.T_odom_cam)
+            P = _backproject(np.asarray(v.depth), np.asarray(det.mask), intr, v.T_odom_cam)
             if len(P) < params.min_mask_pixels // 3:
                 continue
             dets.append((v, det))
@@ -388,12 +396,14 @@ def _model_trunk(lm_id: int, obs: list[tuple[TrunkView, Detection]], places: np.
     band_h = np.full(len(trunk), np.nan) if height_ground is None else height_ground.height_of(trunk)
     in_band = (band_h >= h_lo) & (band_h <= h_hi)
     band_views: list[CylinderView] = []
-    band_rows: list[np.ndarray] = []
+    band_pixels: list[int] = []
     for v, det in obs:
-        m = _band_rows_mask(det.mask, v.depth, intr, v.T_odom_cam, height_ground, h_lo, h_hi, h_bottom, axis)
-        band_rows.append(m)
+        depth = np.asarray(v.depth)
+        m = _band_rows_mask(np.asarray(det.mask), depth, intr, v.T_odom_cam, height_ground, h_lo, h_hi, h_bottom,
+                            axis)
+        band_pixels.append(int((m & (depth > 0)).sum()))
         if m.sum() >= params.min_mask_pixels // 4:
-            band_views.append(CylinderView(v.T_odom_cam, m, v.depth))
+            band_views.append(CylinderView(v.T_odom_cam, _kept_like(m, det.mask), v.depth))
     band: CylinderFit | None = None
     baseline: CylinderFit | None = None
     if height_ground is not None and (in_band.sum() < params.min_band_points or not band_views):
@@ -411,9 +421,9 @@ def _model_trunk(lm_id: int, obs: list[tuple[TrunkView, Detection]], places: np.
             flags.append("hidden_at_diameter_height")
             band = baseline = None
     observations = []
-    for (v, det), m in zip(obs, band_rows):
+    for (v, det), n_band in zip(obs, band_pixels):
         cyl_cam = band.cylinder.transformed(np.linalg.inv(v.T_odom_cam)) if band is not None else None
-        observations.append(TrunkObservation(v.keyframe, v.stamp, det, cyl_cam, int((m & (v.depth > 0)).sum())))
+        observations.append(TrunkObservation(v.keyframe, v.stamp, det, cyl_cam, n_band))
     length = float(h_top - (base @ axis))
     return TrunkLandmark(id=lm_id, axis=axis, base=base, length_m=length, ground=ground, band=band,
                          diameter_m=2.0 * band.cylinder.radius if band is not None else None,

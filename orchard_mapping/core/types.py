@@ -64,3 +64,39 @@ class StampedTrajectory:
     positions: np.ndarray  # (N, 3) m, in the odom frame
     quaternions: np.ndarray  # (N, 4) qx qy qz qw
     frame_id: str = field(default="")
+
+
+@dataclass(frozen=True, eq=False)
+class ImagePatch:
+    """The part of an image (H, W[, C]) that a later stage reads, zero elsewhere: a keyframe's depth or mask
+    kept around its trunk detections instead of whole (the streaming pipeline keeps hundreds of views).
+
+    np.asarray(patch) gives the whole image back (built on demand, then dropped by the caller)."""
+
+    data: np.ndarray  # (h, w[, C]) the kept rectangle
+    row0: int  # px, image row of data[0]
+    col0: int  # px, image column of data[:, 0]
+    shape: tuple[int, ...]  # (H, W[, C]) of the whole image
+
+    @staticmethod
+    def crop(image: np.ndarray, box: tuple[int, int, int, int]) -> "ImagePatch":
+        """Keep image[r0:r1, c0:c1] of box (r0, c0, r1, c1) px, clipped to the image."""
+        H, W = image.shape[:2]
+        r0, c0 = max(0, int(box[0])), max(0, int(box[1]))
+        r1, c1 = min(H, int(box[2])), min(W, int(box[3]))
+        r1, c1 = max(r0, r1), max(c0, c1)
+        return ImagePatch(np.ascontiguousarray(image[r0:r1, c0:c1]), r0, c0, tuple(image.shape))
+
+    def __array__(self, dtype=None, copy=None) -> np.ndarray:
+        out = np.zeros(self.shape, self.data.dtype if dtype is None else dtype)
+        h, w = self.data.shape[:2]
+        out[self.row0:self.row0 + h, self.col0:self.col0 + w] = self.data
+        return out
+
+    def sum(self) -> int:
+        """Of the whole image (zero outside the patch): a mask's pixel count."""
+        return self.data.sum()
+
+    @property
+    def nbytes(self) -> int:
+        return int(self.data.nbytes)

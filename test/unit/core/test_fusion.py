@@ -330,3 +330,27 @@ def test_fuse_side_local_mode_runs_on_a_few_frames(row):
     kept = res.cleaned_depth[2] > 0
     assert (good & kept).sum() >= 0.9 * good.sum()
     assert (bad & kept).sum() < 0.5 * bad.sum()
+
+
+def test_moving_volume_frees_what_the_camera_left_behind(row, accuracy):
+    """A volume that moves with the camera (keyframes cleaned 0.5 m behind it, blocks out of every camera's
+    reach extracted and freed) holds fewer blocks than one volume of the whole row and gives the same cloud
+    and cleaned depth: each freed block's surface is final when it is freed. Depth is fused to 1.5 m here
+    (a camera's reach ~1.7 m) so that the 7 m row holds several windows."""
+    kw = dict(keyframes=row.keyframes, depth_max_m=1.5)
+    whole = fuse_side(row.frames(), row.intr, clean_after_m=100.0, **kw)  # never moves: one volume
+    got: list[tuple[int, np.ndarray]] = []
+    res = fuse_side(row.frames(), row.intr, clean_after_m=0.5, clean_batch_m=0.25,
+                    on_cleaned=lambda k, d, c: got.append((k, d)), **kw)
+    assert whole.blocks_retired == 0 and res.blocks_retired > 0
+    assert not res.cleaned_depth and [k for k, _ in got] == row.keyframes  # handed over in order, not kept
+    print(f"moving volume: peak {res.peak_blocks} blocks, {res.blocks_retired} freed; one volume {whole.peak_blocks}")
+    # the window is ~4 m of the 7 m row (reach 1.7 m either side of the cameras still needed): ~0.6
+    accuracy.at_most("blocks held by the moving volume / one volume's", res.peak_blocks / whole.peak_blocks, 0.75)
+    dist = row.surface_distance(res.points)
+    accuracy.at_most("moving volume: fused points' median distance to the true surfaces, m",
+                     float(np.median(dist)), 0.01)
+    accuracy.at_most("moving volume: points / one volume's points, deviation",
+                     abs(len(res.points) / len(whole.points) - 1), 0.05)
+    agree = np.mean([np.mean((d > 0) == (whole.cleaned_depth[k] > 0)) for k, d in got])
+    accuracy.at_most("moving volume: cleaned pixels that differ from one volume's", 1 - agree, 0.03)
