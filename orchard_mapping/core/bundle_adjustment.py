@@ -97,6 +97,18 @@ class BundleAdjustmentParams:
     # (4-tree front side, 294 keyframes: 0.263 vs 0.262 % drift, 23 s vs 111 s).
     relative_error_tol: float = 1e-3
     min_observations: int = 2  # landmarks seen fewer times are left out
+    # Bundle adjustment in windows of this many keyframes (0 = one global BA): memory is that of a window.
+    # 30-tree row, 1535/1545 keyframes per side (front/back), with max_track 80 (docs/performance.md): the
+    # BA's peak 1.80/1.82 GB (global, all observations) -> 1.14/0.92 GB, drift 0.258/0.091 -> 0.261/0.090 %,
+    # ATE 0.049/0.044 -> 0.049/0.043 %. Windows of 300 (tail 80) cost the back side 8 % more drift.
+    window: int = 500
+    window_tail: int = 150  # keyframes at a window's end left to the next (~5 m: longer than a landmark's track)
+    window_hold: int = 50  # adjusted keyframes a window starts from, held fixed (gauge and continuity)
+    # Observations kept per landmark, spread evenly over its track (0 = all). Eliminating a landmark leaves a
+    # dense factor on every keyframe that saw it, (6n)^2 for n views: where the camera turns at a row's end
+    # landmarks are seen by 100-150 keyframes. Tracks are 8 keyframes long in the median and 28 at the 90th
+    # percentile, so 80 cuts only those: 40 saved more memory but cost the 30-tree back side 33 % more drift.
+    max_track: int = 80
 
 
 def default_disparity_sigma(fx: float, baseline_m: float) -> float:
@@ -296,6 +308,25 @@ def _add_gauge(
         )
 
 
+def _spread_over_track(kf: np.ndarray, lm: np.ndarray, max_track: int) -> np.ndarray:
+    """(M,) bool: at most max_track observations of each landmark, evenly spaced in keyframe order (0 = all)."""
+    if max_track <= 0:
+        return np.ones(len(kf), bool)
+    if max_track < 2:
+        raise ReconstructionError(f"max_track must be 0 (all) or >= 2, got {max_track}")
+    order = np.lexsort((kf, lm))  # by landmark, then keyframe
+    lm_s = lm[order]
+    starts = np.flatnonzero(np.r_[True, lm_s[1:] != lm_s[:-1]])  # (G,) first row of each landmark
+    count = np.diff(np.r_[starts, len(lm_s)])  # (G,)
+    c = np.repeat(count, count)  # (M,) the track length of each row's landmark
+    r = np.arange(len(lm_s)) - np.repeat(starts, count)  # (M,) rank along the track
+    slot = np.rint(r * (max_track - 1) / np.maximum(c - 1, 1))  # the evenly spaced slot nearest to r
+    pick = np.rint(slot * (c - 1) / (max_track - 1)) == r  # r is that slot's own observation
+    keep = np.empty(len(kf), bool)
+    keep[order] = (c <= max_track) | pick
+    return keep
+
+
 def bundle_adjust(
     poses: np.ndarray,
     landmarks: np.ndarray,
@@ -317,6 +348,7 @@ def bundle_adjust(
     relative_error_tol: float = 1e-5,
     scale_anchor: int | None = None,
     hold: Sequence[int] = (),
+    max_track: int = 0,
 ) -> BAResult:
     """Global bundle adjustment, eq. (objectBA), with Huber on every term.
 
@@ -335,6 +367,8 @@ def bundle_adjust(
     None = the keyframe farthest from keyframe 0.
     hold (rgbd): keyframes held at their initial poses instead of keyframe 0 alone (the gauge of a window
     continuing an adjusted part: `bundle_adjust_windowed`).
+    max_track: at most this many observations per landmark, spread evenly over the keyframes that saw it,
+    first and last included (0 = all).
     """
     t0 = time.perf_counter()
     if mode not in ("rgbd", "rgb"):
@@ -359,7 +393,7 @@ def bundle_adjust(
     # Landmarks used: a finite initial position and enough observations.
     counts = np.bincount(lm, minlength=n_lm)  # (L,)
     used_lm = (counts >= int(min_observations)) & np.all(np.isfinite(landmarks), axis=1)  # (L,)
-    keep = used_lm[lm]  # (M,)
+    keep = used_lm[lm] & _spread_over_track(kf, lm, int(max_track))  # (M,)
     kf, lm, uv, depth = kf[keep], lm[keep], uv[keep], depth[keep]
     if not np.any(used_lm):
         raise ReconstructionError(
@@ -452,8 +486,9 @@ def bundle_adjust_windowed(
     intr: CameraIntrinsics,
     *,
     window: int,
-    tail: int,
-    hold: int,
+    window_tail: int,
+    window_hold: int,
+    mode: Literal["rgbd", "rgb"] = "rgbd",
     loops: Sequence[LoopClosure] = (),
     **kw,
 ) -> BAResult:
@@ -470,11 +505,12 @@ def bundle_adjust_windowed(
     poses = _check_poses(poses)
     landmarks = np.asarray(landmarks, dtype=float)
     n_kf = len(poses)
-    if not (0 < hold and 0 <= tail and window > hold + tail):
-        raise ReconstructionError(f"windowed bundle adjustment needs 0 < hold and window > hold + tail, got "
-                                  f"window={window}, tail={tail}, hold={hold}")
-    if n_kf <= window:
-        return bundle_adjust(poses, landmarks, obs, intr, loops=loops, **kw)
+    tail, hold = int(window_tail), int(window_hold)
+    if window and not (0 < hold and 0 <= tail and window > hold + tail):
+        raise ReconstructionError(f"windowed bundle adjustment needs 0 < window_hold and window > window_hold + "
+                                  f"window_tail, got window={window}, window_tail={tail}, window_hold={hold}")
+    if n_kf <= window or window == 0 or mode == "rgb":  # RGB only: one BA holds the scale gauge of the side
+        return bundle_adjust(poses, landmarks, obs, intr, mode=mode, loops=loops, **kw)
     t0 = time.perf_counter()
     kf, lm, uv, depth = _check_observations(obs, n_kf, len(landmarks))
     out = poses.copy()  # (K, 4, 4) final up to `done`, then the current estimate
@@ -500,7 +536,8 @@ def bundle_adjust_windowed(
         inside = [i for i, lc in enumerate(loops) if a <= lc.kf_a < b and a <= lc.kf_b < b]
         used_loops.update(inside)
         win_loops = [replace(loops[i], kf_a=loops[i].kf_a - a, kf_b=loops[i].kf_b - a) for i in inside]
-        res = bundle_adjust(init, lm_init, sub, intr, loops=win_loops, hold=range(done - a) if a else range(1), **kw)
+        res = bundle_adjust(init, lm_init, sub, intr, mode=mode, loops=win_loops,
+                            hold=range(done - a) if a else range(1), **kw)
         out[max(done, a):b] = res.poses[max(done, a) - a:]
         ok = np.isfinite(res.landmarks).all(axis=1)
         out_lm[ids[ok]] = res.landmarks[ok]

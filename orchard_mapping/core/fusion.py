@@ -451,6 +451,8 @@ class FusionParams:
 # Called with (keyframe position, cleaned depth (H, W) float32 m, colour (H, W, 3) uint8 or None) as soon as a
 # keyframe's depth is cleaned, so the caller can use it and let it go (the streaming pipeline).
 OnCleaned = Callable[[int, np.ndarray, "np.ndarray | None"], None]
+# Called with (keyframe position, colour (H, W, 3) uint8) as a keyframe comes due for cleaning: False skips it.
+Select = Callable[[int, np.ndarray], bool]
 
 
 def fuse_side(frames: Iterable[tuple[np.ndarray, np.ndarray, np.ndarray]], intr: CameraIntrinsics, *,
@@ -462,7 +464,7 @@ def fuse_side(frames: Iterable[tuple[np.ndarray, np.ndarray, np.ndarray]], intr:
               float_min_neighbours: int = DEFAULT_FLOAT_MIN_NEIGHBOURS, fused_spacing_m: float = 0.0,
               cleaned_spacing_m: float = 0.0, clean_after_m: float = DEFAULT_CLEAN_AFTER_M,
               clean_batch_m: float = DEFAULT_CLEAN_BATCH_M, keep_color: bool = False,
-              on_cleaned: OnCleaned | None = None) -> FusionResult:
+              on_cleaned: OnCleaned | None = None, select: Select | None = None) -> FusionResult:
     """Fuse one side's frames (depth (H, W) m, colour (H, W, 3) uint8, T_odom_cam (4, 4)) and clean keyframe depth.
 
     The frames go into one TSDF volume, whose surface is the side's cloud. The cleaned depth of a
@@ -482,6 +484,8 @@ def fuse_side(frames: Iterable[tuple[np.ndarray, np.ndarray, np.ndarray]], intr:
     keep_color: also keep the colour image of every cleaned keyframe (for the trunk detector; ~1 MB each).
     on_cleaned: when given, each cleaned keyframe is handed to it (in order) instead of being kept in
     the result (cleaned_depth and cleaned_color come back empty).
+    select: when given, called with (position, colour) as each keyframe comes due for cleaning; a keyframe
+    it refuses is not cleaned (the pipeline cleans only the keyframes with a trunk detection in them).
     """
     t_start = time.perf_counter()
     window_px = int(np.ceil(silhouette_tol_m * max(intr.fx, intr.fy) / 1.0))  # px at 1 m depth
@@ -553,8 +557,9 @@ def fuse_side(frames: Iterable[tuple[np.ndarray, np.ndarray, np.ndarray]], intr:
         poses.append(Tc)
         if (key_set is None or i in key_set) and (
                 last_cleaned is None or np.linalg.norm(here - last_cleaned) >= cleaned_spacing_m):
-            pending.append((i, d, np.asarray(color) if keep_color else None, Tc))
             last_cleaned = here
+            if select is None or select(i, np.asarray(color)):
+                pending.append((i, d, np.asarray(color) if keep_color else None, Tc))
         if mode == "local":
             kept.append((d, np.asarray(color), Tc))
         elif pending and np.linalg.norm(pending[0][3][:3, 3] - here) >= clean_after_m + clean_batch_m:

@@ -22,6 +22,7 @@ from orchard_mapping.core.bundle_adjustment import (
     BAResult,
     ReconstructionError,
     bundle_adjust,
+    bundle_adjust_windowed,
     default_disparity_sigma,
     optimise_pose_graph,
 )
@@ -188,6 +189,35 @@ def test_rgbd_ba_result_shapes(side, rgbd_result):
     assert np.all(np.isnan(res.landmarks[skipped]))
     assert res.n_landmarks_used == int((~skipped).sum())
     assert res.n_factors == int(np.sum(~skipped[side.obs.landmark])) + 1  # + gauge prior
+
+
+def test_windowed_ba_is_as_accurate_as_global_ba(side, rgbd_result, accuracy):
+    """Three windows of 30 keyframes (10 left to the next, 5 held) over the 60-keyframe side: memory of a
+    window, accuracy of the global BA (each landmark here is seen over up to 5 m: a long track)."""
+    glob, _ = rgbd_result
+    win = bundle_adjust_windowed(side.drifted, side.init_points, side.obs, INTR, window=30, window_tail=10,
+                                 window_hold=5, pixel_sigma=0.5)
+    path = path_length(side.truth[:, :3, 3])
+    ate_g, ate_w = ate(glob.poses, side.truth), ate(win.poses, side.truth)
+    print(f"\nATE global {ate_g * 1e3:.2f} mm, windowed {ate_w * 1e3:.2f} mm")
+    accuracy.at_most("ATE windowed / global BA", ate_w / ate_g, 1.5)
+    accuracy.at_most("ATE after windowed BA, fraction of path", ate_w / path, 0.001)
+    np.testing.assert_allclose(win.poses[0], side.drifted[0], atol=1e-6)  # the gauge stays put
+    assert win.n_landmarks_used >= 0.95 * glob.n_landmarks_used
+    with pytest.raises(ReconstructionError, match="window_hold"):
+        bundle_adjust_windowed(side.drifted, side.init_points, side.obs, INTR, window=10, window_tail=8, window_hold=5)
+
+
+def test_track_cap_keeps_ba_accurate(side, rgbd_result, accuracy):
+    """At most 6 observations per landmark, spread over its track (here 5 in the median, up to 33): a quarter
+    of the factors go, the accuracy stays (ATE ratio 0.95-1.23 on seeds 0-2, ~1 mm either way)."""
+    glob, _ = rgbd_result
+    capped = bundle_adjust(side.drifted, side.init_points, side.obs, INTR, pixel_sigma=0.5, max_track=6)
+    assert capped.n_factors < 0.8 * glob.n_factors
+    ate_c = ate(capped.poses, side.truth)
+    accuracy.at_most("ATE with 6 observations per landmark / all", ate_c / ate(glob.poses, side.truth), 1.6)
+    accuracy.at_most("ATE with 6 observations per landmark, fraction of path",
+                     ate_c / path_length(side.truth[:, :3, 3]), 0.001)
 
 
 def test_huber_keeps_ba_accurate_with_outliers(side_outliers, accuracy):

@@ -24,7 +24,7 @@ import open3d.core as o3c
 import pytest
 
 from orchard_mapping.config import load_config
-from orchard_mapping.core.bundle_adjustment import BAResult, bundle_adjust
+from orchard_mapping.core.bundle_adjustment import BAResult, bundle_adjust_windowed
 from orchard_mapping.core.geometry import umeyama
 from orchard_mapping.core.mono_odometry import RGBFrontEnd, triangulate
 from orchard_mapping.core.odometry import FrontEndParams, RGBDFrontEnd
@@ -92,7 +92,7 @@ def make_row(seed: int) -> Row:
     surfaces.add_triangles(scene.vertices.astype(np.float32), scene.triangles.astype(np.uint32))
     fe, ms = _run(frames, intr)
     poses = np.array([k.T_odom_cam for k in fe.keyframes])
-    ba = bundle_adjust(poses, fe.landmarks, fe.observations, intr, mode="rgb", **asdict(load_config().ba))
+    ba = bundle_adjust_windowed(poses, fe.landmarks, fe.observations, intr, mode="rgb", **asdict(load_config().ba))
     print(f"\nRGB front end: {len(frames)} frames {intr.width}x{intr.height}, {ms:.1f} ms/frame, "
           f"{len(fe.keyframes)} keyframes, {len(fe.landmarks)} landmarks, {len(fe.observations)} observations; "
           f"RGB-only BA {ba.seconds:.1f} s, {ba.iterations} iterations")
