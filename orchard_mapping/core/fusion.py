@@ -182,7 +182,10 @@ class TsdfFusion:
             return np.zeros((0, 3), np.float32), np.zeros((0, 3), np.uint8)
         pts = pcd.point.positions.numpy().astype(np.float32)  # (P, 3)
         cols = np.clip(pcd.point.colors.numpy() * 255.0 + 0.5, 0, 255).astype(np.uint8)  # (P, 3)
-        return pts, cols
+        # Open3D extracts in parallel, in an order that changes from run to run (the same points): sorted, the
+        # same bag gives the same cloud, and so the same trunks (RANSAC draws points by index)
+        order = np.lexsort((pts[:, 2], pts[:, 1], pts[:, 0]))
+        return pts[order], cols[order]
 
     def _surface_changed(self) -> None:
         self._mesh_scene = None  # re-extract on the next ray cast

@@ -241,12 +241,17 @@ def _select_by_masks(points: np.ndarray, views: list[tuple[TrunkView, Detection]
     return sel
 
 
-def _kept_like(mask: np.ndarray, ref: np.ndarray | ImagePatch) -> np.ndarray | ImagePatch:
-    """mask (H, W) kept as compactly as ref, a detection's mask (the same rectangle when ref is a patch)."""
-    if isinstance(ref, ImagePatch):
-        h, w = ref.data.shape[:2]
-        return ImagePatch.crop(mask, (ref.row0, ref.col0, ref.row0 + h, ref.col0 + w))
-    return mask
+# px: what a band view keeps around its mask: the silhouette terms look 8 px outside a mask and move its
+# edges by up to edge_snap_px (core/cylinder.py); nothing else is read.
+_VIEW_MARGIN_PX = 12
+
+
+def _around(mask: np.ndarray, margin: int) -> tuple[int, int, int, int]:
+    """(r0, c0, r1, c1): the bounding box of mask's pixels (H, W) grown by margin px."""
+    rows, cols = np.flatnonzero(mask.any(axis=1)), np.flatnonzero(mask.any(axis=0))
+    if len(rows) == 0:
+        return 0, 0, 0, 0
+    return rows[0] - margin, cols[0] - margin, rows[-1] + 1 + margin, cols[-1] + 1 + margin
 
 
 def _normals(points: np.ndarray, radius: float = 0.02, knn: int = 20) -> np.ndarray:
@@ -403,7 +408,8 @@ def _model_trunk(lm_id: int, obs: list[tuple[TrunkView, Detection]], places: np.
                             axis)
         band_pixels.append(int((m & (depth > 0)).sum()))
         if m.sum() >= params.min_mask_pixels // 4:
-            band_views.append(CylinderView(v.T_odom_cam, _kept_like(m, det.mask), v.depth))
+            rect = _around(m, _VIEW_MARGIN_PX + params.edge_snap_px)
+            band_views.append(CylinderView(v.T_odom_cam, ImagePatch.crop(m, rect), ImagePatch.crop(depth, rect)))
     band: CylinderFit | None = None
     baseline: CylinderFit | None = None
     if height_ground is not None and (in_band.sum() < params.min_band_points or not band_views):
