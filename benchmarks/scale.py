@@ -9,7 +9,8 @@ with the code before it in one run.
 
 Usage:
   python benchmarks/scale.py [--trees 10 30] [--rate 15] [--seed 0] [--workdir /tmp/scale_bench]
-        [--sim 30=/path/to/sim] [--code before=/tmp/before] [--json out.json]
+        [--sim 30=/path/to/sim] [--sim-set camera.width=320 ... --tag half] [--code before=/tmp/before]
+        [--json out.json]
   python benchmarks/scale.py --table out.json [more.json ...]
 
 Rendering a row takes ~80 s per tree on 2 cores and ~180 MB of bags per tree (a 30-tree row: 40 min,
@@ -68,11 +69,12 @@ def run_sampled(cmd: list[str], env: dict[str, str], cwd: Path, log: Path, perio
     return proc.returncode, time.perf_counter() - t0, peak / 2**20
 
 
-def simulate_row(trees: int, rate: float, seed: int, out: Path) -> Path:
+def simulate_row(trees: int, rate: float, seed: int, out: Path, settings: list[str]) -> Path:
     if not (out / "ground_truth.json").is_file():
         cmd, env = _cli(None)
+        extra = [x for kv in settings for x in ("--set", kv)]
         subprocess.run(cmd + ["simulate", "--scenario", "standard", "--trees", str(trees), "--seed", str(seed),
-                              "--set", f"camera.rate_hz={rate}", "--out", str(out), "--force"],
+                              "--set", f"camera.rate_hz={rate}", *extra, "--out", str(out), "--force"],
                        env=env, check=True)
     return out
 
@@ -158,6 +160,9 @@ def main() -> None:
     ap.add_argument("--seed", type=int, default=0)
     ap.add_argument("--workdir", type=Path, default=Path(tempfile.gettempdir()) / "scale_bench")
     ap.add_argument("--sim", action="append", default=[], metavar="N=DIR", help="reuse a simulated N-tree row")
+    ap.add_argument("--sim-set", action="append", default=[], metavar="KEY=VALUE",
+                    help="simulator setting for the rows simulated here (e.g. camera.width=320), named in --tag")
+    ap.add_argument("--tag", default="", help="added to the simulated rows' folder names (their settings)")
     ap.add_argument("--code", action="append", default=[], metavar="LABEL=DIR",
                     help="also run another checkout of the project (e.g. before=/tmp/before)")
     ap.add_argument("--json", type=Path, help="write the rows here")
@@ -172,8 +177,8 @@ def main() -> None:
     args.workdir.mkdir(parents=True, exist_ok=True)
     rows = []
     for n in args.trees:
-        sim = sims.get(n) or simulate_row(n, args.rate, args.seed,
-                                          args.workdir / f"standard_{n}trees_{args.rate:g}hz_seed{args.seed}" / "sim")
+        name = f"standard_{n}trees_{args.rate:g}hz_seed{args.seed}" + (f"_{args.tag}" if args.tag else "")
+        sim = sims.get(n) or simulate_row(n, args.rate, args.seed, args.workdir / name / "sim", args.sim_set)
         for label, code in codes:  # side by side: the same bags, one after the other, nothing else running
             rows.append(measure(label, code, sim, n, args.workdir))
             if args.json:
