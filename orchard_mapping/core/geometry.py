@@ -22,6 +22,7 @@ __all__ = [
     "path_length",
     "pose_matrices",
     "quat_to_matrix",
+    "SlabIndex",
     "rotation_angle_deg",
     "transform_points",
     "umeyama",
@@ -169,3 +170,26 @@ def move_with_keyframes(points: np.ndarray, poses_before: np.ndarray, poses_afte
         idx = order[starts[j]:starts[j + 1]]
         out[idx] = pts[idx] @ delta[j, :3, :3].T + delta[j, :3, 3]
     return out
+
+
+class SlabIndex:
+    """Indices of a cloud's points (P, 3) near a place, in the cloud's own order: the cloud is sorted once
+    along its longest axis (a row's length), so a query reads a slab of the row rather than every point.
+    Per tree over a whole row's cloud, reading every point made trunk modelling and the merge's tree feet
+    grow with the square of the row's length (100-tree row: 8.5x the 30-tree row's time)."""
+
+    def __init__(self, points: np.ndarray) -> None:
+        self.points = np.asarray(points)
+        self.axis = int(np.argmax(np.ptp(self.points, axis=0))) if len(self.points) else 0
+        self.order = np.argsort(self.points[:, self.axis], kind="stable")  # (P,)
+        self.key = self.points[self.order, self.axis]  # (P,) sorted
+
+    def slab(self, centre: np.ndarray, half: float) -> np.ndarray:
+        """(n,) sorted indices of the points within half (m) of centre (3,) along the longest axis."""
+        lo, hi = np.searchsorted(self.key, [centre[self.axis] - half, centre[self.axis] + half])
+        return np.sort(self.order[lo:hi])
+
+    def within_cube(self, centre: np.ndarray, half: float) -> np.ndarray:
+        """(n, 3) the points strictly within the cube of half side `half` (m) around centre (3,)."""
+        idx = self.slab(centre, half)
+        return self.points[idx[np.all(np.abs(self.points[idx] - centre) < half, axis=1)]]

@@ -31,7 +31,7 @@ import numpy as np
 
 from orchard_mapping.core.cylinder import (Cylinder, CylinderError, CylinderFit, CylinderView, fit_cylinder,
                                            point_distance, refine_cone_axis)
-from orchard_mapping.core.geometry import transform_points
+from orchard_mapping.core.geometry import SlabIndex, transform_points
 from orchard_mapping.core.detection import CLASS_TRUNK, Detection
 from orchard_mapping.core.ground import GroundParams, LocalGroundFit, fit_local_ground, ground_neighbourhood
 from orchard_mapping.core.odometry import backproject
@@ -241,6 +241,10 @@ def _select_by_masks(points: np.ndarray, views: list[tuple[TrunkView, Detection]
     return sel
 
 
+# m added to a tree's reach along the row when its stretch of the cloud is cut out: up to 5 m of tree
+# (canopy) on an axis tilted 15 deg off the row's normal plane
+_SLAB_MARGIN_M = 1.5
+
 # px: what a band view keeps around its mask: the silhouette terms look 8 px outside a mask and move its
 # edges by up to edge_snap_px (core/cylinder.py); nothing else is read.
 _VIEW_MARGIN_PX = 12
@@ -339,6 +343,8 @@ def build_trunk_landmarks(points: np.ndarray, poses: np.ndarray, views: list[Tru
     # (the long axis of each well-seen trunk's points) and associate again.
     up = _trunks_up(det_points, label, up)
     label = _associate(np.asarray(places), up, params.associate_radius_m)
+    index = SlabIndex(points)
+    reach = max(ground_params.radius_m, ground_params.wide_radius_m, params.associate_radius_m) + 0.1 + _SLAB_MARGIN_M
     # order landmarks along the path: by the first keyframe that saw them
     groups = sorted((np.flatnonzero(label == k) for k in range(label.max() + 1)),
                     key=lambda g: min(dets[i][0].keyframe for i in g))
@@ -346,7 +352,10 @@ def build_trunk_landmarks(points: np.ndarray, poses: np.ndarray, views: list[Tru
     for members in groups:
         if len(members) < params.min_observations:
             continue
-        lm = _model_trunk(len(out), [dets[i] for i in members], np.asarray(places)[members], points, up, intr,
+        # the tree's stretch of the row: its neighbourhood and wide ground lie within `reach` of its centre
+        # across the row, and a trunk axis tilts by at most max_axis_angle_deg over the tree's height
+        nearby = points[index.slab(np.median(np.asarray(places)[members], axis=0), reach)]
+        lm = _model_trunk(len(out), [dets[i] for i in members], np.asarray(places)[members], nearby, up, intr,
                           params, ground_params, rng)
         if lm is not None:
             out.append(lm)
