@@ -25,7 +25,9 @@ from pathlib import Path
 
 import cv2
 import numpy as np
+from scipy import sparse
 from scipy.optimize import least_squares
+from scipy.spatial import cKDTree
 from scipy.spatial.transform import Rotation
 
 from orchard_mapping.core.geometry import rotation_angle_deg
@@ -242,6 +244,17 @@ def bow_vectors(tf: np.ndarray, idf: np.ndarray | None = None) -> np.ndarray:
     v = tf * idf[None]
     norm = np.linalg.norm(v, axis=1, keepdims=True)
     return np.divide(v, norm, out=np.zeros_like(v), where=norm > 0)
+
+
+def _bow_sparse(tf: sparse.spmatrix) -> sparse.csr_matrix:
+    """`bow_vectors` for sparse term frequencies (K, W): the same tf-idf vectors, kept sparse."""
+    tf = sparse.csr_matrix(tf, dtype=np.float64)
+    df = np.bincount(tf.indices[tf.data > 0], minlength=tf.shape[1])  # (W,) keyframes with each word
+    idf = np.log((1.0 + tf.shape[0]) / (1.0 + df)) + 1.0
+    v = tf @ sparse.diags(idf)
+    norm = np.sqrt(np.asarray(v.multiply(v).sum(axis=1)).ravel())  # (K,)
+    inv = np.divide(1.0, norm, out=np.zeros_like(norm), where=norm > 0)
+    return sparse.csr_matrix(sparse.diags(inv) @ v)
 
 
 def score_matrix(vectors: np.ndarray) -> np.ndarray:
@@ -589,14 +602,14 @@ class LoopDetector:
         self.vocabulary = vocabulary
         self._trained_on = 0  # keyframes the current vocabulary was trained on
         self.keyframes: list[Keyframe] = []
-        self._tf: list[np.ndarray] = []  # (W,) per stored keyframe
+        self._tf: list[sparse.csr_matrix] = []  # (1, W) per stored keyframe
 
     # -- incremental ------------------------------------------------------------------------------------------------
 
     def add(self, keyframe: Keyframe) -> None:
         """Store a keyframe in the database (after detecting with it, if it is also a query)."""
         self.keyframes.append(keyframe)
-        self._tf.append(self.vocabulary.histogram(keyframe.descriptors) if self.vocabulary is not None else np.zeros(0))
+        self._tf.append(self._histogram(keyframe.descriptors))
 
     def detect(self, keyframe: Keyframe) -> list[LoopClosure]:
         """Verified loops between `keyframe` (as kf_b) and earlier stored keyframes (as kf_a), best score first."""
@@ -605,9 +618,8 @@ class LoopDetector:
         self._ensure_vocabulary(extra=keyframe.descriptors)
         if self.vocabulary is None:  # nothing to train on yet
             return []
-        tf = np.vstack([*self._tf, self.vocabulary.histogram(keyframe.descriptors)])  # (K + 1, W)
-        v = bow_vectors(tf)
-        scores = v[:-1] @ v[-1]  # (K,)
+        v = _bow_sparse(sparse.vstack([*self._tf, self._histogram(keyframe.descriptors)]))  # (K + 1, W)
+        scores = (v[:-1] @ v[-1].T).toarray().ravel()  # (K,)
         return self._verify_candidates(keyframe, self.keyframes, scores)
 
     # -- batch ------------------------------------------------------------------------------------------------------
@@ -625,10 +637,25 @@ class LoopDetector:
         if len(keyframes) < 2:
             return []
         self._ensure_vocabulary()
-        S = score_matrix(bow_vectors(np.vstack(self._tf)))  # (K, K)
+        V = _bow_sparse(sparse.vstack(self._tf))  # (K, W), ~300 words per keyframe with features
+        # Only the scores `candidates` can use are computed: those of keyframes whose views are near (the
+        # others it sets aside); the full (K, K) matrix and dense (K, W) vectors grew with the square and the
+        # length of the row (1.6 GB for a 100-tree side).
+        near: list[list[int]] | None = None
+        if self.max_view_distance_m is not None:
+            pts = _view_points(np.stack([kf.T_odom_cam for kf in keyframes]), self.view_depth_m)  # (K, 3)
+            ok = np.flatnonzero(np.isfinite(pts).all(axis=1))
+            tree = cKDTree(pts[ok])
+            near = [[] for _ in keyframes]
+            for i, js in zip(ok, tree.query_ball_point(pts[ok], self.max_view_distance_m)):
+                near[i] = sorted(int(ok[j]) for j in js if ok[j] < i)
         loops: list[LoopClosure] = []
         for i, kf in enumerate(keyframes):
-            loops += self._verify_candidates(kf, keyframes[:i], S[i, :i])
+            scores = np.zeros(i)  # (i,) scores of the earlier keyframes
+            js = list(range(i)) if near is None else near[i]
+            if js:
+                scores[js] = (V[js] @ V[i].T).toarray().ravel()
+            loops += self._verify_candidates(kf, keyframes[:i], scores)
         return loops
 
     def score_matrix(self) -> np.ndarray:
@@ -636,7 +663,7 @@ class LoopDetector:
         if not self.keyframes:
             return np.zeros((0, 0))
         self._ensure_vocabulary()
-        return score_matrix(bow_vectors(np.vstack(self._tf)))
+        return score_matrix(_bow_sparse(sparse.vstack(self._tf)).toarray())
 
     # -- internals --------------------------------------------------------------------------------------------------
 
@@ -686,4 +713,10 @@ class LoopDetector:
             des = des[rng.choice(len(des), self.max_train_descriptors, replace=False)]
         self.vocabulary = BinaryVocabulary.train(des, branching=self.branching, depth=self.depth, seed=self.seed)
         self._trained_on = max(n, 1)
-        self._tf = [self.vocabulary.histogram(kf.descriptors) for kf in self.keyframes]
+        self._tf = [self._histogram(kf.descriptors) for kf in self.keyframes]
+
+    def _histogram(self, descriptors: np.ndarray) -> sparse.csr_matrix:
+        """(1, W) sparse term frequencies of a keyframe (all zero without a vocabulary yet)."""
+        if self.vocabulary is None:
+            return sparse.csr_matrix((1, 1))
+        return sparse.csr_matrix(self.vocabulary.histogram(descriptors)[None])
