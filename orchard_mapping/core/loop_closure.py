@@ -231,30 +231,23 @@ class BinaryVocabulary:
             return BinaryVocabulary(f["centres"], f["children"], f["word_of"])
 
 
-def bow_vectors(tf: np.ndarray, idf: np.ndarray | None = None) -> np.ndarray:
-    """tf (K, W) term frequencies -> (K, W) tf-idf vectors, L2-normalised (zero rows stay zero).
+def bow_vectors(tf: np.ndarray | sparse.spmatrix, idf: np.ndarray | None = None) -> np.ndarray | sparse.csr_matrix:
+    """tf (K, W) term frequencies -> (K, W) tf-idf vectors, L2-normalised (zero rows stay zero); sparse in
+    (scipy), sparse out: a keyframe holds ~300 of the 10^4 words.
 
     idf defaults to the smoothed inverse document frequency over these K rows,
     ln((1 + K) / (1 + df)) + 1, which stays positive for a two-keyframe database.
     """
-    tf = np.atleast_2d(np.asarray(tf, np.float64))
+    dense = not sparse.issparse(tf)
+    m = sparse.csr_matrix(np.atleast_2d(np.asarray(tf, np.float64)) if dense else tf, dtype=np.float64)
     if idf is None:
-        df = np.count_nonzero(tf > 0, axis=0)  # (W,)
-        idf = np.log((1.0 + len(tf)) / (1.0 + df)) + 1.0
-    v = tf * idf[None]
-    norm = np.linalg.norm(v, axis=1, keepdims=True)
-    return np.divide(v, norm, out=np.zeros_like(v), where=norm > 0)
-
-
-def _bow_sparse(tf: sparse.spmatrix) -> sparse.csr_matrix:
-    """`bow_vectors` for sparse term frequencies (K, W): the same tf-idf vectors, kept sparse."""
-    tf = sparse.csr_matrix(tf, dtype=np.float64)
-    df = np.bincount(tf.indices[tf.data > 0], minlength=tf.shape[1])  # (W,) keyframes with each word
-    idf = np.log((1.0 + tf.shape[0]) / (1.0 + df)) + 1.0
-    v = tf @ sparse.diags(idf)
+        df = np.bincount(m.indices[m.data > 0], minlength=m.shape[1])  # (W,) keyframes with each word
+        idf = np.log((1.0 + m.shape[0]) / (1.0 + df)) + 1.0
+    v = m @ sparse.diags(np.asarray(idf, np.float64))
     norm = np.sqrt(np.asarray(v.multiply(v).sum(axis=1)).ravel())  # (K,)
     inv = np.divide(1.0, norm, out=np.zeros_like(norm), where=norm > 0)
-    return sparse.csr_matrix(sparse.diags(inv) @ v)
+    out = sparse.csr_matrix(sparse.diags(inv) @ v)
+    return out.toarray() if dense else out
 
 
 def score_matrix(vectors: np.ndarray) -> np.ndarray:
@@ -618,7 +611,7 @@ class LoopDetector:
         self._ensure_vocabulary(extra=keyframe.descriptors)
         if self.vocabulary is None:  # nothing to train on yet
             return []
-        v = _bow_sparse(sparse.vstack([*self._tf, self._histogram(keyframe.descriptors)]))  # (K + 1, W)
+        v = bow_vectors(sparse.vstack([*self._tf, self._histogram(keyframe.descriptors)]))  # (K + 1, W)
         scores = (v[:-1] @ v[-1].T).toarray().ravel()  # (K,)
         return self._verify_candidates(keyframe, self.keyframes, scores)
 
@@ -637,7 +630,7 @@ class LoopDetector:
         if len(keyframes) < 2:
             return []
         self._ensure_vocabulary()
-        V = _bow_sparse(sparse.vstack(self._tf))  # (K, W), ~300 words per keyframe with features
+        V = bow_vectors(sparse.vstack(self._tf))  # (K, W), ~300 words per keyframe with features
         # Only the scores `candidates` can use are computed: those of keyframes whose views are near (the
         # others it sets aside); the full (K, K) matrix and dense (K, W) vectors grew with the square and the
         # length of the row (1.6 GB for a 100-tree side).
@@ -663,7 +656,7 @@ class LoopDetector:
         if not self.keyframes:
             return np.zeros((0, 0))
         self._ensure_vocabulary()
-        return score_matrix(_bow_sparse(sparse.vstack(self._tf)).toarray())
+        return score_matrix(bow_vectors(sparse.vstack(self._tf)).toarray())
 
     # -- internals --------------------------------------------------------------------------------------------------
 
