@@ -338,7 +338,7 @@ def test_moving_volume_frees_what_the_camera_left_behind(row, accuracy):
     and cleaned depth: each freed block's surface is final when it is freed. Depth is fused to 1.5 m here
     (a camera's reach ~1.7 m) so that the 7 m row holds several windows."""
     kw = dict(keyframes=row.keyframes, depth_max_m=1.5)
-    whole = fuse_side(row.frames(), row.intr, clean_after_m=100.0, **kw)  # never moves: one volume
+    whole = fuse_side(row.frames(), row.intr, clean_after_m=100.0, clean_batch_m=100.0, **kw)  # one volume
     got: list[tuple[int, np.ndarray]] = []
     res = fuse_side(row.frames(), row.intr, clean_after_m=0.5, clean_batch_m=0.25,
                     on_cleaned=lambda k, d, c: got.append((k, d)), **kw)
@@ -354,6 +354,18 @@ def test_moving_volume_frees_what_the_camera_left_behind(row, accuracy):
                      abs(len(res.points) / len(whole.points) - 1), 0.05)
     agree = np.mean([np.mean((d > 0) == (whole.cleaned_depth[k] > 0)) for k, d in got])
     accuracy.at_most("moving volume: cleaned pixels that differ from one volume's", 1 - agree, 0.03)
+
+
+def test_volume_moves_on_where_no_keyframe_is_cleaned(row, accuracy):
+    """A stretch with nothing to clean (no trunk detected: `select` refuses every keyframe) still retires
+    the blocks the camera left behind: the volume's size does not grow with the stretch's length."""
+    kw = dict(keyframes=row.keyframes, depth_max_m=1.5, clean_after_m=0.5, clean_batch_m=0.25)
+    whole = fuse_side(row.frames(), row.intr, **{**kw, "clean_after_m": 100.0, "clean_batch_m": 100.0})
+    res = fuse_side(row.frames(), row.intr, select=lambda k, color: False, **kw)
+    assert not res.cleaned_depth and res.blocks_retired > 0
+    accuracy.at_most("blocks held with nothing to clean / one volume's", res.peak_blocks / whole.peak_blocks, 0.75)
+    accuracy.at_most("nothing to clean: points / one volume's points, deviation",
+                     abs(len(res.points) / len(whole.points) - 1), 0.05)
 
 
 def test_the_same_frames_give_the_same_cloud(row):
