@@ -18,6 +18,7 @@ from collections.abc import Iterator
 from collections.abc import Callable
 from dataclasses import asdict, dataclass, field, replace
 from pathlib import Path
+from typing import Protocol
 
 import numpy as np
 
@@ -106,10 +107,14 @@ def _frames_of(seq: RGBDSequence, side: str, labelled: bool) -> Iterator[RGBDFra
             yield f
 
 
-def front_end(frames, intr, cfg: OrchardConfig, progress: Progress | None, label: str, n: int) -> FrontEndResult:
+def _new_front_end(intr, cfg: OrchardConfig):
     from orchard_mapping.core.mono_odometry import RGBFrontEnd  # colour only: landmarks by triangulation, up to scale
 
-    fe = (RGBFrontEnd if cfg.input.mode == "rgb" else RGBDFrontEnd)(intr, cfg.odometry)
+    return (RGBFrontEnd if cfg.input.mode == "rgb" else RGBDFrontEnd)(intr, cfg.odometry)
+
+
+def front_end(frames, intr, cfg: OrchardConfig, progress: Progress | None, label: str, n: int) -> FrontEndResult:
+    fe = _new_front_end(intr, cfg)
     for i, frame in enumerate(frames):
         fe.track(frame)
         if progress:
@@ -119,63 +124,168 @@ def front_end(frames, intr, cfg: OrchardConfig, progress: Progress | None, label
     return fe.result()
 
 
+class KeyframeImages(Protocol):
+    """Where a side's keyframe images wait for fusion, which runs after bundle adjustment."""
+
+    def keep(self, frame: RGBDFrame) -> None:
+        """Called with each frame the front end makes a keyframe of, as it is made."""
+
+    def frames(self, frame_index: list[int]) -> Iterator[tuple[int, np.ndarray, np.ndarray]]:
+        """(frame index, depth (H, W) float32 m, colour (H, W, 3) uint8) of these frames (ascending), in order."""
+
+    def close(self) -> None:
+        """Let go of what is kept."""
+
+
+class BagKeyframeImages:
+    """Offline: fusion reads the keyframes' images from the bag again (a second pass); nothing is kept."""
+
+    def __init__(self, seq: RGBDSequence, side: str, labelled: bool) -> None:
+        self.seq, self.side, self.labelled = seq, side, labelled
+
+    def keep(self, frame: RGBDFrame) -> None:
+        pass
+
+    def frames(self, frame_index: list[int]) -> Iterator[tuple[int, np.ndarray, np.ndarray]]:
+        want = set(frame_index)
+        for f in _frames_of(self.seq, self.side, self.labelled):
+            if f.index in want and f.depth is not None:
+                yield f.index, f.depth, f.color
+
+    def close(self) -> None:
+        pass
+
+
+class SpooledKeyframeImages:
+    """Live: each keyframe's depth and colour are written to a temporary folder as the keyframe is made
+    (~2 MB at 640x480, a few keyframes per second) and read back, unchanged, for fusion: memory does not
+    grow with the row, and fusion sees exactly what a second pass over the bag would give."""
+
+    def __init__(self, root: str | Path | None = None) -> None:
+        self.dir = Path(tempfile.mkdtemp(prefix="orchard-keyframes-", dir=root))
+
+    def _paths(self, index: int) -> tuple[Path, Path]:
+        return self.dir / f"{index:08d}_depth.npy", self.dir / f"{index:08d}_color.npy"
+
+    def keep(self, frame: RGBDFrame) -> None:
+        if frame.depth is None:
+            return
+        depth, color = self._paths(frame.index)
+        np.save(depth, np.asarray(frame.depth, np.float32))
+        np.save(color, np.asarray(frame.color, np.uint8))
+
+    def frames(self, frame_index: list[int]) -> Iterator[tuple[int, np.ndarray, np.ndarray]]:
+        for i in frame_index:
+            depth, color = self._paths(i)
+            if depth.is_file():
+                yield i, np.load(depth), np.load(color)
+
+    def close(self) -> None:
+        shutil.rmtree(self.dir, ignore_errors=True)
+
+
+class SideSession:
+    """One side's reconstruction fed a frame at a time: `add` runs the front end on each frame as it comes
+    (from a bag, or from the camera topics in the live odometry node), `finish` does the rest once the side
+    is over (loop detection, pose graph, bundle adjustment, TSDF fusion with trunk detection, trunk
+    cylinders and local grounds). `orchard-map run` and the node graph go through this same class, so the
+    same frames give the same side map."""
+
+    def __init__(self, side: str, intrinsics, cfg: OrchardConfig, images: KeyframeImages, bag: str = "") -> None:
+        self.side, self.intrinsics, self.cfg, self.images, self.bag = side, intrinsics, cfg, images, bag
+        self.fe = _new_front_end(intrinsics, cfg)
+        self.frames = 0
+        self.seconds = 0.0  # s spent in the front end
+
+    def add(self, frame: RGBDFrame) -> tuple[np.ndarray, bool]:
+        """Track one frame: (T_odom_cam (4, 4), NaN when it could not be placed; whether it became a keyframe)."""
+        t0 = time.perf_counter()
+        n = len(self.fe.keyframes)
+        pose = self.fe.track(frame)
+        new = len(self.fe.keyframes) > n
+        if new:
+            self.images.keep(frame)
+        self.frames += 1
+        self.seconds += time.perf_counter() - t0
+        return pose, new
+
+    def finish(self, timings: Timings) -> SideMap:
+        """Everything after the front end; the side map. Lets go of the kept keyframe images."""
+        try:
+            return self._finish(timings)
+        finally:
+            self.images.close()
+
+    def _finish(self, timings: Timings) -> SideMap:
+        cfg, side, intr = self.cfg, self.side, self.intrinsics
+        timings.add(f"front_end_{side}", self.seconds)
+        for event in self.fe.events:
+            log.warning("%s: %s", side, event)
+        fe = self.fe.result()
+        if len(fe.keyframes) < 2:
+            raise BagFormatError(f"the {side} side could not be reconstructed: {len(fe.keyframes)} keyframe(s) "
+                                 f"from {self.frames} frames (too little texture or valid depth)", bag=self.bag)
+        poses = np.array([k.T_odom_cam for k in fe.keyframes])
+        odometry = poses.copy()
+        loops: list[LoopClosure] = []
+        if cfg.loop.enabled and cfg.input.mode == "rgbd":
+            t0 = time.perf_counter()
+            loops = cfg.loop.detector(intr).detect_all(fe.keyframes)
+            timings.add(f"loop_detection_{side}", time.perf_counter() - t0)
+            log.info("%s: %d verified loop closures", side, len(loops))
+        t0 = time.perf_counter()
+        poses = optimise_pose_graph(poses, loops, loop_sigma_rot_deg=cfg.ba.loop_sigma_rot_deg,
+                                    loop_sigma_trans_m=cfg.ba.loop_sigma_trans_m)
+        timings.add(f"pose_graph_{side}", time.perf_counter() - t0)
+        t0 = time.perf_counter()
+        ba: BAResult = bundle_adjust_windowed(poses, fe.landmarks, fe.observations, intr, mode=cfg.input.mode,
+                                              loops=loops, **asdict(cfg.ba))
+        timings.add(f"bundle_adjustment_{side}", time.perf_counter() - t0)
+        release_freed_memory()
+        log.info("%s: %d keyframes, %d landmarks used, BA error %.1f -> %.1f in %d iterations", side,
+                 len(fe.keyframes), ba.n_landmarks_used, ba.initial_error, ba.final_error, ba.iterations)
+        points = np.zeros((0, 3), np.float32)
+        colors = np.zeros((0, 3), np.uint8)
+        trunks: list[TrunkLandmark] = []
+        stamps = np.array([k.stamp for k in fe.keyframes])
+        if cfg.input.mode == "rgbd":
+            t0 = time.perf_counter()
+            views = TrunkViews(cfg, side, stamps, ba.poses)
+            fused = fuse_keyframes(self.images, [k.frame_index for k in fe.keyframes], ba.poses, intr, cfg, views)
+            points, colors = fused.points, fused.colors
+            timings.add(f"fusion_{side}", time.perf_counter() - t0 - views.seconds)
+            timings.add(f"trunk_detection_{side}", views.seconds)
+            if cfg.trunks.source != "off":
+                t0 = time.perf_counter()
+                trunks = build_trunk_landmarks(points, ba.poses, views.views, intr, cfg.trunks, cfg.ground,
+                                               np.random.default_rng(cfg.seed))
+                timings.add(f"trunks_{side}", time.perf_counter() - t0)
+                if not trunks:
+                    log.warning("%s: no trunk found (trunks.json lists none for this side)", side)
+        release_freed_memory()
+        return SideMap(
+            side=side, frame_id=getattr(cfg.frames, f"odom_{side}"), intrinsics=intr,
+            keyframe_stamps=stamps, keyframe_poses=ba.poses,
+            landmarks=ba.landmarks, observations=fe.observations, loops=loops,
+            cloud_points=points, cloud_colors=colors,
+            scale_free=cfg.input.mode == "rgb",
+            odometry_poses=odometry,
+            trunks=trunks,
+        )
+
+
 def reconstruct_side(seq: RGBDSequence, side: str, cfg: OrchardConfig, timings: Timings, labelled: bool = False,
                      progress: Progress | None = None) -> SideMap:
-    """Front end, pose graph, bundle adjustment for one side."""
+    """One side of a bag through a `SideSession` (fusion reads the keyframes' images from the bag again)."""
     n = int(np.sum(_side_mask(seq, side))) if labelled else len(seq)
+    session = SideSession(side, seq.intrinsics, cfg, BagKeyframeImages(seq, side, labelled), bag=seq.bag)
     t0 = time.perf_counter()
-    fe = front_end(_frames_of(seq, side, labelled), seq.intrinsics, cfg, progress, side, n)
-    timings.add(f"front_end_{side}", time.perf_counter() - t0)
-    if len(fe.keyframes) < 2:
-        raise BagFormatError(f"the {side} side could not be reconstructed: {len(fe.keyframes)} keyframe(s) "
-                             f"from {n} frames (too little texture or valid depth)", bag=seq.bag)
-    poses = np.array([k.T_odom_cam for k in fe.keyframes])
-    odometry = poses.copy()
-    loops: list[LoopClosure] = []
-    if cfg.loop.enabled and cfg.input.mode == "rgbd":
-        t0 = time.perf_counter()
-        loops = cfg.loop.detector(seq.intrinsics).detect_all(fe.keyframes)
-        timings.add(f"loop_detection_{side}", time.perf_counter() - t0)
-        log.info("%s: %d verified loop closures", side, len(loops))
-    t0 = time.perf_counter()
-    poses = optimise_pose_graph(poses, loops, loop_sigma_rot_deg=cfg.ba.loop_sigma_rot_deg,
-                                loop_sigma_trans_m=cfg.ba.loop_sigma_trans_m)
-    timings.add(f"pose_graph_{side}", time.perf_counter() - t0)
-    t0 = time.perf_counter()
-    ba: BAResult = bundle_adjust_windowed(poses, fe.landmarks, fe.observations, seq.intrinsics, mode=cfg.input.mode,
-                                          loops=loops, **asdict(cfg.ba))
-    timings.add(f"bundle_adjustment_{side}", time.perf_counter() - t0)
-    release_freed_memory()
-    log.info("%s: %d keyframes, %d landmarks used, BA error %.1f -> %.1f in %d iterations", side,
-             len(fe.keyframes), ba.n_landmarks_used, ba.initial_error, ba.final_error, ba.iterations)
-    points = np.zeros((0, 3), np.float32)
-    colors = np.zeros((0, 3), np.uint8)
-    trunks: list[TrunkLandmark] = []
-    stamps = np.array([k.stamp for k in fe.keyframes])
-    if cfg.input.mode == "rgbd":
-        t0 = time.perf_counter()
-        views = TrunkViews(cfg, side, stamps, ba.poses)
-        fused = fuse_keyframes(seq, side, labelled, [k.frame_index for k in fe.keyframes], ba.poses, cfg, views)
-        points, colors = fused.points, fused.colors
-        timings.add(f"fusion_{side}", time.perf_counter() - t0 - views.seconds)
-        timings.add(f"trunk_detection_{side}", views.seconds)
-        if cfg.trunks.source != "off":
-            t0 = time.perf_counter()
-            trunks = build_trunk_landmarks(points, ba.poses, views.views, seq.intrinsics, cfg.trunks, cfg.ground,
-                                           np.random.default_rng(cfg.seed))
-            timings.add(f"trunks_{side}", time.perf_counter() - t0)
-            if not trunks:
-                log.warning("%s: no trunk found (trunks.json lists none for this side)", side)
-    release_freed_memory()
-    return SideMap(
-        side=side, frame_id=getattr(cfg.frames, f"odom_{side}"), intrinsics=seq.intrinsics,
-        keyframe_stamps=stamps, keyframe_poses=ba.poses,
-        landmarks=ba.landmarks, observations=fe.observations, loops=loops,
-        cloud_points=points, cloud_colors=colors,
-        scale_free=cfg.input.mode == "rgb",
-        odometry_poses=odometry,
-        trunks=trunks,
-    )
+    for i, frame in enumerate(_frames_of(seq, side, labelled)):
+        session.add(frame)
+        if progress:
+            progress(side, i + 1, n)
+    session.seconds = time.perf_counter() - t0  # the front end's stage includes decoding the bag's images
+    return session.finish(timings)
 
 
 def release_freed_memory() -> None:
@@ -247,20 +357,17 @@ class TrunkViews:
         self.views.append(TrunkView(k, float(self.stamps[k]), self.poses[k], ImagePatch.crop(depth, rect), dets))
 
 
-def fuse_keyframes(seq: RGBDSequence, side: str, labelled: bool, frame_index: list[int], poses: np.ndarray,
-                   cfg: OrchardConfig, views: TrunkViews) -> FusionResult:
-    """TSDF fusion of the keyframes' depth with their optimised poses (a second pass over the bag); the
-    keyframes (position among the keyframes = keyframe id) with a trunk detection are cleaned as fusion
-    moves on and go to `views`."""
+def fuse_keyframes(images: KeyframeImages, frame_index: list[int], poses: np.ndarray, intr, cfg: OrchardConfig,
+                   views: TrunkViews) -> FusionResult:
+    """TSDF fusion of the keyframes' depth (frame_index[k] is keyframe k's frame) with their optimised poses
+    (k, 4, 4); the keyframes with a trunk detection are cleaned as fusion moves on and go to `views`."""
     pose_of = dict(zip(frame_index, poses))
 
     def frames() -> Iterator[tuple[np.ndarray, np.ndarray, np.ndarray]]:
-        for f in _frames_of(seq, side, labelled):
-            if f.index in pose_of and f.depth is not None:
-                yield f.depth, f.color, pose_of[f.index]
+        for i, depth, color in images.frames(sorted(pose_of)):
+            yield depth, color, pose_of[i]
 
-    return fuse_side(frames(), seq.intrinsics, keyframes=None, on_cleaned=views, select=views.select,
-                     **asdict(cfg.fusion))
+    return fuse_side(frames(), intr, keyframes=None, on_cleaned=views, select=views.select, **asdict(cfg.fusion))
 
 
 def write_cloud(path: Path, points: np.ndarray, colors: np.ndarray) -> None:

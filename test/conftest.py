@@ -64,6 +64,25 @@ def seed_offset() -> int:
     return SEED_OFFSET
 
 
+@pytest.fixture(scope="session")
+def standard_row(tmp_path_factory, seed_offset):
+    """The 2-tree `standard` row (15 Hz, both sweeps of the paper's protocol, true trunk masks for every
+    frame) and `orchard_mapping.pipeline.run` on it with trunks from those masks: (sim folder, result
+    folder). Shared by the single-side tests and the node graph's (which must give the same trees)."""
+    from orchard_mapping.config import load_config
+    from orchard_mapping.pipeline import run
+    from orchard_mapping.sim.scenario import load_scenario
+    from orchard_mapping.sim.simulate import simulate
+
+    root = tmp_path_factory.mktemp("standard")
+    sc = load_scenario("standard", {"row.n_trees": 2, "camera.rate_hz": 15, "masks_every": 1})
+    sim = simulate(sc, 11 + seed_offset, root / "standard").out_dir
+    out = root / "result"
+    run(sim / "front", sim / "back", out,
+        load_config(overrides={"trunks": {"source": "masks", "masks_dir": str(sim / "masks")}}))
+    return sim, out
+
+
 class Accuracy:
     """Asserts a measured value against its limit and records both (see the module docstring)."""
 

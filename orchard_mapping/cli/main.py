@@ -133,6 +133,32 @@ def run(
 
 
 @app.command()
+def launch(
+    bag: list[Path] = typer.Option([], "--bag", help="Replay this bag instead of the live camera (repeat: front, back)."),
+    rate: float = typer.Option(1.0, help="Replay speed (2: twice as fast)."),
+    start: float = typer.Option(0.0, help="Seconds into the first bag to start from."),
+    loop: bool = typer.Option(False, help="Replay the bags until stopped."),
+    record: Optional[Path] = typer.Option(None, help="Record the graph's outputs (/orchard/...) to this MCAP bag."),
+    params: Optional[Path] = typer.Option(None, help="ROS parameters file (default: config/ros_params.yaml)."),
+    restart: bool = typer.Option(True, "--restart/--no-restart", help="Start a node again when it dies (live)."),
+    side: Optional[str] = typer.Option(None, help="Live: the side being recorded when no side topic says."),
+) -> None:
+    """Start the ROS 2 node graph (docs/ros.md), each node in its own process; Ctrl-C stops it cleanly."""
+    from orchard_mapping.errors import OrchardMappingError
+    from orchard_mapping.ros.graph import graph_specs
+    from orchard_mapping.ros.supervisor import Supervisor
+
+    try:
+        specs = graph_specs(bag, rate=rate, start_s=start, loop=loop, record=record, params=params,
+                            restart=restart, side=side)
+        code = Supervisor(specs).run()
+    except OrchardMappingError as err:
+        raise _fail(err) from err
+    if code:
+        raise typer.Exit(code)
+
+
+@app.command()
 def inspect(
     path: Path = typer.Argument(..., help="A simulation folder (with ground_truth.json), a rosbag2 folder or .mcap."),
 ) -> None:

@@ -52,8 +52,12 @@ __all__ = [
     "BagSummary",
     "BagWriter",
     "RGBDSequence",
+    "RawMessage",
+    "camera_intrinsics",
+    "decode_frame",
     "describe_bag",
     "iter_messages",
+    "iter_raw",
     "msg_header",
     "read_rgbd",
 ]
@@ -186,8 +190,18 @@ class BagWriter:
 
     def write_message(self, topic: str, stamp: float, msg: Any, msgtype: str) -> None:
         """Write any registered message type (ours included); `stamp` (s) is the log time only."""
+        self._require_open()
+        try:
+            data = self._store.serialize_cdr(msg, msgtype)
+        except KeyError as err:
+            raise BagError(f"unknown message type {msgtype!r}", bag=str(self.path), topic=topic) from err
+        except Exception as err:  # rosbags raises assorted errors for a wrongly built message
+            raise BagError(f"cannot serialize {msgtype}: {err}", bag=str(self.path), topic=topic) from err
+        self.write_raw(topic, stamp, data, msgtype)
+
+    def write_raw(self, topic: str, stamp: float, data: bytes, msgtype: str) -> None:
+        """Write a message already serialised (CDR, as rclpy receives it with raw=True); `stamp` (s): log time."""
         writer = self._require_open()
-        ns = _stamp_ns(stamp)
         if topic not in self._conns:
             if msgtype not in self._store.types:
                 raise BagError(f"unknown message type {msgtype!r}", bag=str(self.path), topic=topic)
@@ -196,11 +210,7 @@ class BagWriter:
         if have != msgtype:
             raise BagError(f"topic holds {have}, cannot also write {msgtype}", bag=str(self.path), topic=topic)
         try:
-            data = self._store.serialize_cdr(msg, msgtype)
-        except Exception as err:  # rosbags raises assorted errors for a wrongly built message
-            raise BagError(f"cannot serialize {msgtype}: {err}", bag=str(self.path), topic=topic) from err
-        try:
-            writer.write(conn, ns, data)
+            writer.write(conn, _stamp_ns(stamp), data)
         except WriterError as err:
             raise BagError(f"cannot write: {err}", bag=str(self.path), topic=topic) from err
 
@@ -520,6 +530,36 @@ def _intrinsics(msg: Any) -> CameraIntrinsics | None:
     )
 
 
+def camera_intrinsics(msg: Any, width: int, height: int, source: str, topic: str) -> CameraIntrinsics:
+    """The intrinsics of a sensor_msgs/CameraInfo (rclpy's or rosbags') for colour images width x height, as
+    `read_rgbd` takes them from a bag; CalibrationError naming the field when unusable."""
+    intr = _intrinsics(msg)
+    if intr is None:
+        raise CalibrationError(f"no valid fx/fy in field 'k' ({[float(x) for x in msg.k]})", bag=source, topic=topic)
+    if intr.width and intr.height and (intr.width, intr.height) != (width, height):
+        raise CalibrationError(f"CameraInfo is {intr.width}x{intr.height} (fields 'width', 'height') but colour "
+                               f"images are {width}x{height}", bag=source, topic=topic)
+    return CameraIntrinsics(width, height, intr.fx, intr.fy, intr.cx, intr.cy, intr.distortion, intr.frame_id)
+
+
+def decode_frame(color_msg: Any, depth_msg: Any | None, intr: CameraIntrinsics, index: int, side: str,
+                 depth_range_m: tuple[float, float], source: str, topics: TopicsConfig) -> RGBDFrame:
+    """An RGBDFrame from a colour and an aligned depth sensor_msgs/Image (rclpy's or rosbags'), checked and
+    decoded exactly as `read_rgbd` decodes a bag's (stamp: the colour image's); BagFormatError naming the
+    topic and field when malformed."""
+    _check_image(color_msg, COLOR_ENCODINGS, "colour", index, source, topics.color)
+    depth = None
+    if depth_msg is not None:
+        _check_image(depth_msg, DEPTH_ENCODINGS, "depth", index, source, topics.depth)
+        if (depth_msg.width, depth_msg.height) != (color_msg.width, color_msg.height):
+            raise BagFormatError(f"depth image {index} is {depth_msg.width}x{depth_msg.height} but the colour "
+                                 f"image is {color_msg.width}x{color_msg.height} (depth must be aligned to colour)",
+                                 bag=source, topic=topics.depth)
+        depth = _decode_depth(depth_msg, *depth_range_m)
+    return RGBDFrame(stamp=float(np.float64(_header_ns(color_msg.header)) / 1e9), color=_decode_color(color_msg),
+                     depth=depth, intrinsics=intr, side=side, index=index)
+
+
 def _pair(color_ns: np.ndarray, depth_ns: np.ndarray, max_dt_ns: int) -> np.ndarray:
     """For each colour stamp, the index into `depth_ns` of the nearest depth stamp within max_dt_ns, else -1."""
     if depth_ns.size == 0:
@@ -724,6 +764,45 @@ def iter_messages(path: str | os.PathLike[str], topic: str) -> Iterator[tuple[fl
             raise MissingTopicError(f"topic not in bag; topics present: {sorted(reader.topics)}", bag=bag, topic=topic)
         for conn, log_ns, raw in _messages(reader, list(info.connections), bag):
             yield log_ns / 1e9, _deserialize(reader, raw, conn, bag)
+
+
+@dataclass(frozen=True)
+class RawMessage:
+    """One stored message, undecoded: what a bag player publishes."""
+
+    topic: str
+    msgtype: str  # e.g. "sensor_msgs/msg/Image"
+    log_time_ns: int  # ns, the bag's log time
+    data: bytes  # CDR with its encapsulation header, as rclpy publishes and receives it
+
+
+def iter_raw(path: str | os.PathLike[str], topics: Sequence[str] | None = None,
+             start_s: float = 0.0) -> Iterator[RawMessage]:
+    """The stored messages of a bag (of `topics`, None: all) in log-time order, from start_s seconds after the
+    bag's first message; rosbag1 messages are converted to CDR."""
+    path = Path(path)
+    bag = str(path)
+    with _open_reader(path) as reader:
+        conns = list(reader.connections)
+        if topics is not None:
+            missing = sorted(set(topics) - {c.topic for c in conns})
+            if missing:
+                raise MissingTopicError(f"topics not in bag: {missing}; topics present: {sorted(reader.topics)}",
+                                        bag=bag, topic=missing[0])
+            conns = [c for c in conns if c.topic in set(topics)]
+        first = reader.start_time
+        from_ns = first + round(start_s * 1e9)
+        ros1 = not reader.is2
+        for conn, log_ns, raw in _messages(reader, conns, bag):
+            if log_ns < from_ns:
+                continue
+            if ros1:
+                try:
+                    raw = reader.typestore.ros1_to_cdr(raw, conn.msgtype)
+                except _DESER_ERRORS as err:
+                    raise BagFormatError(f"cannot convert {conn.msgtype} to CDR: {err}", bag=bag,
+                                         topic=conn.topic) from err
+            yield RawMessage(conn.topic, conn.msgtype, int(log_ns), bytes(raw))
 
 
 # --------------------------------------------------------------------------- summary

@@ -29,7 +29,8 @@ from orchard_mapping.io.results import read_tum
 from orchard_mapping.core.types import StampedTrajectory
 from orchard_mapping.core.geometry import matrix_to_quat
 from orchard_mapping.core.sidemap import SideMap
-from orchard_mapping.pipeline import Timings, merge_sides, reconstruct_side, run
+from orchard_mapping.io.landmarks import read_trunks
+from orchard_mapping.pipeline import SideSession, SpooledKeyframeImages, Timings, merge_sides, reconstruct_side, run
 from orchard_mapping.sim.scenario import load_scenario
 from orchard_mapping.sim.simulate import simulate
 
@@ -52,13 +53,10 @@ def _with_true_masks(sim: Path):
 
 
 @pytest.fixture(scope="module")
-def reconstructed(tmp_path_factory, seed_offset) -> tuple[Path, Path]:
-    """Both sides of the standard row through `run` (bags in, result folder out), trunks from true masks."""
-    root = tmp_path_factory.mktemp("standard")
-    sim = _simulate(root, "standard", SEED + seed_offset, masks_every=1)
-    out = root / "result"
-    run(sim / "front", sim / "back", out, _with_true_masks(sim))
-    return sim, out
+def reconstructed(standard_row) -> tuple[Path, Path]:
+    """Both sides of the standard row (SEED, 2 trees) through `run` (bags in, result folder out), trunks from
+    true masks (test/conftest.py: the node graph's tests use the same run)."""
+    return standard_row
 
 
 _MODEL_SIDES: dict[str, SideMap] = {}  # the side maps of reconstructed_model, for merges on other inputs
@@ -241,6 +239,29 @@ def test_a_failed_run_leaves_no_folder_it_created(tmp_path):
     (existing / "notes.txt").write_text("mine")
     res = CliRunner().invoke(app, ["run", str(tmp_path / "missing_bag"), "--out", str(existing)])
     assert res.exit_code == 2 and sorted(p.name for p in existing.iterdir()) == ["notes.txt"]
+
+
+def test_a_side_fed_frame_by_frame_with_spooled_keyframes_is_the_side_run_wrote(reconstructed, tmp_path):
+    """The live odometry node's way (frames one at a time, each keyframe's images spooled to disk and read
+    back for fusion after BA) gives the side `run` wrote from the same bag: same keyframes, cloud, trunks."""
+    sim, out = reconstructed
+    seq = read_rgbd(sim / "front")
+    images = SpooledKeyframeImages(tmp_path)
+    session = SideSession("front", seq.intrinsics, _with_true_masks(sim), images, bag=seq.bag)
+    made = sum(session.add(frame)[1] for frame in seq)
+    assert len(list(images.dir.glob("*_depth.npy"))) == made > 20
+    side = session.finish(Timings())
+    assert not images.dir.exists()  # the spool goes with the side
+    tum = read_tum(out / "trajectory_front.tum")
+    assert np.array_equal(side.keyframe_stamps, tum.stamps)
+    assert np.abs(side.keyframe_poses[:, :3, 3] - tum.positions).max() < 1e-6
+    import open3d as o3d
+
+    assert len(side.cloud_points) == len(o3d.io.read_point_cloud(str(out / "front.ply")).points)
+    written = [t for t in read_trunks(out / "trunks.json") if t.side == "front"]
+    assert len(side.trunks) == len(written) > 0
+    for lm, t in zip(side.trunks, written):
+        assert lm.id == t.id and np.abs(lm.base - t.base).max() < 1e-6
 
 
 def test_result_folder_parts(reconstructed):

@@ -1,0 +1,305 @@
+"""`rgbd_odometry`: the camera topics in, each side's odometry and, when the side ends, its side map out.
+
+Per side it runs the same `SideSession` as `orchard-map run`: the front end on each frame as it comes,
+each keyframe's images spooled to disk; when the side ends (the side topic changes or says `end`) loop
+detection, bundle adjustment, TSDF fusion with trunk detection, trunk cylinders and local grounds run in
+a worker thread while the next side is already being tracked.
+
+In:  colour and aligned depth (sensor_msgs/Image, sensor-data QoS), CameraInfo, the side topic
+     (std_msgs/String "front" / "back" / "end"; without one the `side` parameter names the side).
+Out, per side (`/orchard/<side>/...`):
+     odometry   nav_msgs/Odometry, every frame placed (frame odom_<side>, child the camera frame)
+     path       nav_msgs/Path of the keyframes, as they are made (latched)
+     keyframes  the optimised keyframe poses, nav_msgs/Path, when the side ends (latched)
+     cloud      the fused cloud, sensor_msgs/PointCloud2 x y z rgb, odom_<side> (latched)
+     trunk_cylinders  orchard_mapping_msgs/TrunkCylinderArray (latched)
+     local_grounds    orchard_mapping_msgs/LocalGroundArray (latched)
+     status     std_msgs/String JSON: frames received, paired, processed, dropped (latched)
+Frames are decoded in the subscription callback and queued (never dropped by the node; a frame DDS lost
+never reaches it, and is counted from the player's side, see benchmarks/live.py).
+"""
+
+from __future__ import annotations
+
+import json
+import queue
+import sys
+import threading
+from collections import deque
+from dataclasses import dataclass, field
+
+import numpy as np
+from geometry_msgs.msg import PoseStamped
+from nav_msgs.msg import Odometry, Path as PathMsg
+from orchard_mapping_msgs.msg import LocalGroundArray, TrunkCylinderArray
+from rclpy.node import Node
+from sensor_msgs.msg import CameraInfo, Image, PointCloud2
+from std_msgs.msg import String
+
+from orchard_mapping.core.geometry import matrix_to_quat
+from orchard_mapping.core.sidemap import SideMap
+from orchard_mapping.errors import OrchardMappingError
+from orchard_mapping.io.bags import camera_intrinsics, decode_frame
+from orchard_mapping.pipeline import SIDES, SideSession, SpooledKeyframeImages, Timings
+from orchard_mapping.ros.clouds import cloud_to_msg
+from orchard_mapping.ros.messages import TrunkRecord, ground_records, grounds_to_msg, trunks_to_msg
+from orchard_mapping.ros.params import ConfigParameters
+from orchard_mapping.ros.player import SIDE_END
+from orchard_mapping.ros.qos import CAMERA, LATCHED
+from orchard_mapping.ros.spin import StopNode, run_node
+
+__all__ = ["RGBDOdometryNode", "main"]
+
+
+def _ns(header) -> int:
+    return int(header.stamp.sec) * 1_000_000_000 + int(header.stamp.nanosec)
+
+
+def _stamp(msg_header, seconds: float, frame_id: str) -> None:
+    sec = int(np.floor(seconds))
+    msg_header.stamp.sec = sec
+    msg_header.stamp.nanosec = min(int(round((seconds - sec) * 1e9)), 999_999_999)
+    msg_header.frame_id = frame_id
+
+
+def _pose(msg_pose, T: np.ndarray) -> None:
+    q = matrix_to_quat(T[:3, :3])  # x y z w
+    msg_pose.position.x, msg_pose.position.y, msg_pose.position.z = (float(v) for v in T[:3, 3])
+    msg_pose.orientation.x, msg_pose.orientation.y, msg_pose.orientation.z, msg_pose.orientation.w = (
+        float(v) for v in q)
+
+
+@dataclass
+class _Counts:
+    colour: int = 0
+    depth: int = 0
+    paired: int = 0
+    unpaired: int = 0  # colour images with no depth image within input.max_pair_dt_s
+    processed: dict[str, int] = field(default_factory=dict)
+    finished: list[str] = field(default_factory=list)
+
+
+class RGBDOdometryNode(Node):
+    def __init__(self) -> None:
+        super().__init__("rgbd_odometry")
+        self.params = ConfigParameters(self)
+        self.declare_parameter("side", "")  # the side being recorded when no side topic says ("front"/"back")
+        self.declare_parameter("spool_dir", "")  # where keyframe images wait for fusion ("": the system's temp)
+        # replaying bags: exit (code 0) once this many side maps are published (0: run until stopped)
+        self.declare_parameter("exit_after_sides", 0)
+        cfg = self.params.config
+        topics = cfg.input.topics
+        self.counts = _Counts()
+        self._colour: deque = deque()  # (stamp ns, Image) waiting for their depth partner
+        self._depth: deque = deque(maxlen=64)  # (stamp ns, Image), recent
+        self._info: CameraInfo | None = None
+        self._side: str = self.get_parameter("side").value or ""
+        self._work: queue.Queue = queue.Queue()  # frames and side changes, in arrival order
+        self._finish: queue.Queue = queue.Queue()  # sessions whose side is over
+        self._pubs: dict[str, dict[str, object]] = {}
+        self._path: dict[str, PathMsg] = {}
+        self.side_maps: dict[str, SideMap] = {}
+        self.errors: list[str] = []
+        self._status = self.create_publisher(String, "/orchard/odometry/status", LATCHED)
+        self.create_subscription(Image, topics.color, self._on_colour, CAMERA)
+        self.create_subscription(Image, topics.depth, self._on_depth, CAMERA)
+        self.create_subscription(CameraInfo, topics.camera_info, self._on_info, CAMERA)
+        self.create_subscription(String, topics.side, self._on_side, LATCHED)
+        self._threads = [threading.Thread(target=self._track_loop, daemon=True),
+                         threading.Thread(target=self._finish_loop, daemon=True)]
+        for t in self._threads:
+            t.start()
+        self._done = threading.Event()
+        self.create_timer(0.2, self._check_done)
+
+    def _check_done(self) -> None:
+        if self._done.is_set():
+            raise StopNode()
+
+    # -- publishers
+
+    def _side_pubs(self, side: str) -> dict[str, object]:
+        if side not in self._pubs:
+            base = f"/orchard/{side}"
+            self._pubs[side] = {
+                "odometry": self.create_publisher(Odometry, f"{base}/odometry", 10),
+                "path": self.create_publisher(PathMsg, f"{base}/path", LATCHED),
+                "keyframes": self.create_publisher(PathMsg, f"{base}/keyframes", LATCHED),
+                "cloud": self.create_publisher(PointCloud2, f"{base}/cloud", LATCHED),
+                "trunks": self.create_publisher(TrunkCylinderArray, f"{base}/trunk_cylinders", LATCHED),
+                "grounds": self.create_publisher(LocalGroundArray, f"{base}/local_grounds", LATCHED),
+            }
+        return self._pubs[side]
+
+    def _publish_status(self) -> None:
+        c = self.counts
+        msg = String()
+        msg.data = json.dumps({"colour": c.colour, "depth": c.depth, "paired": c.paired, "unpaired": c.unpaired,
+                               "processed": c.processed, "finished": c.finished, "errors": self.errors})
+        self._status.publish(msg)
+
+    # -- input (executor thread): decode, pair, queue
+
+    def _on_info(self, msg: CameraInfo) -> None:
+        self._info = msg
+
+    def _on_side(self, msg: String) -> None:
+        side = msg.data.strip()
+        if side != SIDE_END and side not in SIDES:
+            self.get_logger().error(f"side topic: {side!r} is not one of {SIDES + (SIDE_END,)}; ignored")
+            return
+        self._pair(flush=True)
+        self._work.put(("side", side))
+
+    def _on_colour(self, msg: Image) -> None:
+        self.counts.colour += 1
+        self._colour.append((_ns(msg.header), msg))
+        self._pair()
+
+    def _on_depth(self, msg: Image) -> None:
+        self.counts.depth += 1
+        self._depth.append((_ns(msg.header), msg))
+        self._pair()
+
+    def _pair(self, flush: bool = False) -> None:
+        """Give each colour image the depth image nearest in stamp within input.max_pair_dt_s (ties: the
+        earlier), as `read_rgbd` pairs a bag's; wait while a nearer depth may still come."""
+        tol = round(self.params.config.input.max_pair_dt_s * 1e9)
+        while self._colour:
+            c_ns, colour = self._colour[0]
+            near = [(abs(d_ns - c_ns), d_ns, d) for d_ns, d in self._depth if abs(d_ns - c_ns) <= tol]
+            later = any(d_ns >= c_ns + tol for d_ns, _ in self._depth)
+            if not (flush or later or any(dt == 0 for dt, _, _ in near)):
+                return
+            self._colour.popleft()
+            if not near:
+                self.counts.unpaired += 1
+                continue
+            _, _, depth = min(near, key=lambda x: (x[0], x[1]))
+            self.counts.paired += 1
+            self._work.put(("frame", (colour, depth, self._info)))
+
+    # -- tracking (worker thread)
+
+    def _track_loop(self) -> None:
+        session: SideSession | None = None
+        side = ""
+        while True:
+            kind, item = self._work.get()
+            if kind == "stop":
+                if session is not None:
+                    self._finish.put(session)
+                self._finish.put(None)
+                return
+            if kind == "side":
+                if item != side and session is not None:
+                    self._finish.put(session)
+                    session = None
+                side = "" if item == SIDE_END else item
+                continue
+            side = side or self._side
+            if not side:
+                self._error("a frame came before any side was named (side topic or the `side` parameter)")
+                continue
+            colour, depth, info = item
+            try:
+                session = session or self._new_session(side, colour, info)
+                frame = decode_frame(colour, depth, session.intrinsics, session.frames, side,
+                                     (self.params.config.input.depth_min_m, self.params.config.input.depth_max_m),
+                                     "camera topics", self.params.config.input.topics)
+                pose, new = session.add(frame)
+            except OrchardMappingError as err:
+                self._error(str(err))
+                continue
+            self.counts.processed[side] = self.counts.processed.get(side, 0) + 1
+            self._publish_pose(side, frame.stamp, pose, new)
+
+    def _new_session(self, side: str, colour: Image, info: CameraInfo | None) -> SideSession:
+        if info is None:
+            raise OrchardMappingError("no CameraInfo received before the first frame")
+        cfg = self.params.config
+        intr = camera_intrinsics(info, colour.width, colour.height, "camera topics", cfg.input.topics.camera_info)
+        spool = self.get_parameter("spool_dir").value or None
+        self._path[side] = PathMsg()
+        _stamp(self._path[side].header, 0.0, getattr(cfg.frames, f"odom_{side}"))
+        self.get_logger().info(f"{side} side: tracking")
+        return SideSession(side, intr, cfg, SpooledKeyframeImages(spool), bag=f"{side} side (camera topics)")
+
+    def _publish_pose(self, side: str, stamp: float, T: np.ndarray, keyframe: bool) -> None:
+        if not np.isfinite(T).all():
+            return
+        pubs = self._side_pubs(side)
+        frame_id = getattr(self.params.config.frames, f"odom_{side}")
+        odom = Odometry()
+        _stamp(odom.header, stamp, frame_id)
+        odom.child_frame_id = self.params.config.frames.camera
+        _pose(odom.pose.pose, T)
+        pubs["odometry"].publish(odom)
+        if keyframe:
+            ps = PoseStamped()
+            _stamp(ps.header, stamp, frame_id)
+            _pose(ps.pose, T)
+            path = self._path[side]
+            path.header.stamp = ps.header.stamp
+            path.poses.append(ps)
+            pubs["path"].publish(path)
+
+    def _error(self, text: str) -> None:
+        self.get_logger().error(text)
+        self.errors.append(text)
+        self._publish_status()
+
+    # -- finishing a side (worker thread)
+
+    def _finish_loop(self) -> None:
+        while True:
+            session = self._finish.get()
+            if session is None:
+                return
+            side = session.side
+            self.get_logger().info(f"{side} side ended after {session.frames} frames: bundle adjustment, fusion, "
+                                   "trunks")
+            try:
+                sm = session.finish(Timings())
+            except OrchardMappingError as err:
+                self._error(f"{side} side: {err}")
+                continue
+            self.side_maps[side] = sm
+            self._publish_side_map(sm)
+            self.counts.finished.append(side)
+            self._publish_status()
+            wanted = self.get_parameter("exit_after_sides").value
+            if wanted and len(self.counts.finished) >= wanted:
+                self._done.set()
+            self.get_logger().info(f"{side} side map published: {len(sm.keyframe_poses)} keyframes, "
+                                   f"{len(sm.cloud_points)} points, {len(sm.trunks)} trunks")
+
+    def _publish_side_map(self, sm: SideMap) -> None:
+        pubs = self._side_pubs(sm.side)
+        path = PathMsg()
+        stamp = float(sm.keyframe_stamps[-1])
+        _stamp(path.header, stamp, sm.frame_id)
+        for t, T in zip(sm.keyframe_stamps, sm.keyframe_poses):
+            ps = PoseStamped()
+            _stamp(ps.header, float(t), sm.frame_id)
+            _pose(ps.pose, T)
+            path.poses.append(ps)
+        pubs["keyframes"].publish(path)
+        pubs["cloud"].publish(cloud_to_msg(sm.cloud_points, sm.cloud_colors, sm.frame_id, stamp))
+        pubs["trunks"].publish(trunks_to_msg([TrunkRecord.from_landmark(lm, sm.side) for lm in sm.trunks],
+                                             sm.frame_id, stamp))
+        pubs["grounds"].publish(grounds_to_msg(ground_records(sm.trunks, sm.side), sm.frame_id, stamp))
+
+    def close(self) -> None:
+        self._pair(flush=True)
+        self._work.put(("stop", None))
+        for t in self._threads:
+            t.join(timeout=600)
+
+
+def main(argv: list[str] | None = None) -> int:
+    return run_node(RGBDOdometryNode, "rgbd_odometry", finish=lambda node: node.close())
+
+
+if __name__ == "__main__":
+    sys.exit(main())
