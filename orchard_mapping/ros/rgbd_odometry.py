@@ -25,6 +25,7 @@ import json
 import queue
 import sys
 import threading
+import time
 from collections import deque
 from dataclasses import dataclass, field
 
@@ -77,6 +78,10 @@ class _Counts:
     unpaired: int = 0  # colour images with no depth image within input.max_pair_dt_s
     processed: dict[str, int] = field(default_factory=dict)
     finished: list[str] = field(default_factory=list)
+    # colour images the camera's own rhythm says are missing (a gap of n periods: n - 1 missed), counted
+    # from the stamps received: frames DDS lost never reach the node, but their absence shows
+    missed: int = 0
+    side_map_latency_s: dict[str, float] = field(default_factory=dict)  # s, a side's end -> its map published
 
 
 class RGBDOdometryNode(Node):
@@ -91,6 +96,8 @@ class RGBDOdometryNode(Node):
         topics = cfg.input.topics
         self.counts = _Counts()
         self._colour: deque = deque()  # (stamp ns, Image) waiting for their depth partner
+        self._last_colour_ns: int | None = None
+        self._steps: deque = deque(maxlen=30)  # ns between consecutive colour stamps
         self._depth: deque = deque(maxlen=64)  # (stamp ns, Image), recent
         self._info: CameraInfo | None = None
         self._side: str = self.get_parameter("side").value or ""
@@ -135,7 +142,8 @@ class RGBDOdometryNode(Node):
         c = self.counts
         msg = String()
         msg.data = json.dumps({"colour": c.colour, "depth": c.depth, "paired": c.paired, "unpaired": c.unpaired,
-                               "processed": c.processed, "finished": c.finished, "errors": self.errors})
+                               "missed": c.missed, "processed": c.processed, "finished": c.finished,
+                               "side_map_latency_s": c.side_map_latency_s, "errors": self.errors})
         self._status.publish(msg)
 
     # -- input (executor thread): decode, pair, queue
@@ -149,12 +157,33 @@ class RGBDOdometryNode(Node):
             self.get_logger().error(f"side topic: {side!r} is not one of {SIDES + (SIDE_END,)}; ignored")
             return
         self._pair(flush=True)
+        self._last_colour_ns = None  # a new recording: its stamps need not follow the last one's
+        self._steps.clear()
         self._work.put(("side", side))
 
     def _on_colour(self, msg: Image) -> None:
         self.counts.colour += 1
-        self._colour.append((_ns(msg.header), msg))
+        ns = _ns(msg.header)
+        self._count_missed(ns)
+        self._colour.append((ns, msg))
         self._pair()
+
+    def _count_missed(self, ns: int) -> None:
+        """Colour stamps more than 1.5 camera periods apart (the period: the median of the last 30 steps) mean
+        images were lost on the way: count them and say so (a replay faster than the node can take, a
+        congested link)."""
+        if self._last_colour_ns is not None and ns > self._last_colour_ns:
+            dt = ns - self._last_colour_ns
+            if len(self._steps) >= 10:
+                period = float(np.median(self._steps))
+                if dt > 1.5 * period:
+                    n = int(round(dt / period)) - 1
+                    self.counts.missed += n
+                    self.get_logger().warning(f"{n} colour image(s) missing before stamp {ns / 1e9:.3f} s "
+                                              f"({self.counts.missed} so far)")
+                    dt = int(period)  # a gap is not a step of the camera's rhythm
+            self._steps.append(dt)
+        self._last_colour_ns = ns
 
     def _on_depth(self, msg: Image) -> None:
         self.counts.depth += 1
@@ -188,12 +217,12 @@ class RGBDOdometryNode(Node):
             kind, item = self._work.get()
             if kind == "stop":
                 if session is not None:
-                    self._finish.put(session)
+                    self._finish.put((session, time.monotonic()))
                 self._finish.put(None)
                 return
             if kind == "side":
                 if item != side and session is not None:
-                    self._finish.put(session)
+                    self._finish.put((session, time.monotonic()))
                     session = None
                 side = "" if item == SIDE_END else item
                 continue
@@ -253,9 +282,10 @@ class RGBDOdometryNode(Node):
 
     def _finish_loop(self) -> None:
         while True:
-            session = self._finish.get()
-            if session is None:
+            item = self._finish.get()
+            if item is None:
                 return
+            session, ended = item
             side = session.side
             self.get_logger().info(f"{side} side ended after {session.frames} frames: bundle adjustment, fusion, "
                                    "trunks")
@@ -267,6 +297,7 @@ class RGBDOdometryNode(Node):
             self.side_maps[side] = sm
             self._publish_side_map(sm)
             self.counts.finished.append(side)
+            self.counts.side_map_latency_s[side] = round(time.monotonic() - ended, 3)
             self._publish_status()
             wanted = self.get_parameter("exit_after_sides").value
             if wanted and len(self.counts.finished) >= wanted:

@@ -1,0 +1,102 @@
+"""Benchmark: the node graph on a replayed row, as on the vehicle (`orchard-map launch --bag ... --record`).
+
+For each replay rate: the player replays both sides of a simulated `standard` row into the graph (each
+node its own process, loopback DDS); the recorder keeps the odometry node's status, from which the table
+shows, per rate: colour images sent (counted in the bags), received by the odometry node, lost (sent -
+received), the losses the node saw by itself (gaps in the camera's rhythm), frames tracked, the time from
+each side's end to its side map, and the whole replay's wall time.
+
+Usage:
+  python benchmarks/live.py [--trees 2] [--rates 1 2] [--seed 0] [--workdir /tmp/live_bench] [--sim DIR]
+        [--masks] [--json out.json]
+--masks takes trunks from the simulator's masks (trunks.source=masks) instead of the shipped detector.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import os
+import subprocess
+import sys
+import time
+from pathlib import Path
+
+import yaml
+from rich.console import Console
+from rich.table import Table
+
+from orchard_mapping.io.bags import iter_messages, iter_raw
+from orchard_mapping.resources import config_dir
+
+COLOUR = "/camera/color/image_raw"
+
+
+def simulate_row(trees: int, seed: int, out: Path, masks: bool) -> Path:
+    if not (out / "ground_truth.json").is_file():
+        cmd = [sys.executable, "-m", "orchard_mapping.cli.main", "simulate", "--scenario", "standard", "--trees",
+               str(trees), "--seed", str(seed), "--set", "camera.rate_hz=15", "--out", str(out), "--force"]
+        if masks:
+            cmd += ["--set", "masks_every=1"]
+        subprocess.run(cmd, check=True)
+    return out
+
+
+def replay(sim: Path, rate: float, work: Path, masks: bool) -> dict:
+    rec = work / f"recorded_{rate:g}x"
+    params = yaml.safe_load((config_dir() / "ros_params.yaml").read_text())
+    if masks:
+        params["/**"]["ros__parameters"]["trunks"].update(source="masks", masks_dir=str(sim / "masks"))
+    pfile = work / "params.yaml"
+    pfile.write_text(yaml.safe_dump(params))
+    if rec.exists():
+        subprocess.run(["rm", "-rf", str(rec)], check=True)
+    env = dict(os.environ, ROS_AUTOMATIC_DISCOVERY_RANGE="LOCALHOST")
+    t0 = time.perf_counter()
+    with (work / f"launch_{rate:g}x.log").open("w") as log:
+        rc = subprocess.run([sys.executable, "-m", "orchard_mapping.cli.main", "launch", "--bag", str(sim / "front"),
+                             "--bag", str(sim / "back"), "--rate", str(rate), "--record", str(rec),
+                             "--params", str(pfile)], env=env, stdout=log, stderr=subprocess.STDOUT).returncode
+    wall = time.perf_counter() - t0
+    if rc != 0:
+        raise SystemExit(f"{rate:g}x: orchard-map launch exited {rc} (log {work}/launch_{rate:g}x.log)")
+    status = [json.loads(m.data) for _, m in iter_messages(rec, "/orchard/odometry/status")][-1]
+    stamps = {side: [m.log_time_ns for m in iter_raw(sim / side, [COLOUR])] for side in ("front", "back")}
+    sent = sum(len(t) for t in stamps.values())
+    duration = sum((t[-1] - t[0]) / 1e9 for t in stamps.values())
+    return {"rate": rate, "sent": sent, "received": status["colour"], "lost": sent - status["colour"],
+            "missed_seen_by_node": status["missed"], "tracked": sum(status["processed"].values()),
+            "side_map_latency_s": status["side_map_latency_s"], "recording_s": duration, "wall_s": wall,
+            "errors": status["errors"]}
+
+
+def main() -> None:
+    ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
+    ap.add_argument("--trees", type=int, default=2)
+    ap.add_argument("--rates", type=float, nargs="+", default=[1.0, 2.0])
+    ap.add_argument("--seed", type=int, default=0)
+    ap.add_argument("--workdir", type=Path, default=Path("/tmp/live_bench"))
+    ap.add_argument("--sim", type=Path, help="reuse a simulated row (folder with front/, back/)")
+    ap.add_argument("--masks", action="store_true")
+    ap.add_argument("--json", type=Path)
+    args = ap.parse_args()
+    args.workdir.mkdir(parents=True, exist_ok=True)
+    sim = args.sim or simulate_row(args.trees, args.seed, args.workdir / f"standard_{args.trees}trees_seed{args.seed}",
+                                   args.masks)
+    rows = [replay(sim, r, args.workdir, args.masks) for r in args.rates]
+    t = Table(title=f"node graph on a replayed {sim.name} row (orchard-map launch), 2 cores")
+    for col in ("rate", "colour sent", "received", "lost", "lost, seen by node", "tracked",
+                "side end -> map front s", "side end -> map back s", "recording s", "wall s"):
+        t.add_column(col, justify="right")
+    for r in rows:
+        lat = r["side_map_latency_s"]
+        t.add_row(f"{r['rate']:g}x", str(r["sent"]), str(r["received"]), str(r["lost"]),
+                  str(r["missed_seen_by_node"]), str(r["tracked"]), f"{lat.get('front', float('nan')):.1f}",
+                  f"{lat.get('back', float('nan')):.1f}", f"{r['recording_s']:.1f}", f"{r['wall_s']:.1f}")
+    Console(width=200).print(t)
+    if args.json:
+        args.json.write_text(json.dumps(rows, indent=1))
+
+
+if __name__ == "__main__":
+    main()
