@@ -191,8 +191,10 @@ class SideSession:
     cylinders and local grounds). `orchard-map run` and the node graph go through this same class, so the
     same frames give the same side map."""
 
-    def __init__(self, side: str, intrinsics, cfg: OrchardConfig, images: KeyframeImages, bag: str = "") -> None:
+    def __init__(self, side: str, intrinsics, cfg: OrchardConfig, images: KeyframeImages, bag: str = "",
+                 detect: Detect | None = None) -> None:
         self.side, self.intrinsics, self.cfg, self.images, self.bag = side, intrinsics, cfg, images, bag
+        self.detect = detect  # None: the configured detector in this process (trunk_detector())
         self.fe = _new_front_end(intrinsics, cfg)
         self.frames = 0
         self.seconds = 0.0  # s spent in the front end
@@ -250,7 +252,7 @@ class SideSession:
         stamps = np.array([k.stamp for k in fe.keyframes])
         if cfg.input.mode == "rgbd":
             t0 = time.perf_counter()
-            views = TrunkViews(cfg, side, stamps, ba.poses)
+            views = TrunkViews(cfg, side, stamps, ba.poses, detect=self.detect)
             fused = fuse_keyframes(self.images, [k.frame_index for k in fe.keyframes], ba.poses, intr, cfg, views)
             points, colors = fused.points, fused.colors
             timings.add(f"fusion_{side}", time.perf_counter() - t0 - views.seconds)
@@ -262,6 +264,12 @@ class SideSession:
                 timings.add(f"trunks_{side}", time.perf_counter() - t0)
                 if not trunks:
                     log.warning("%s: no trunk found (trunks.json lists none for this side)", side)
+                if views.unavailable:
+                    flag_trunks_near(trunks, ba.poses[views.unavailable, :3, 3], cfg.fusion.depth_max_m)
+                    log.warning("%s: the trunk detector did not answer for %d keyframes (%.1f-%.1f s): trees "
+                                "there may be missing; %d trunks near them are flagged", side,
+                                len(views.unavailable), stamps[views.unavailable[0]], stamps[views.unavailable[-1]],
+                                sum(DETECTOR_UNAVAILABLE in t.flags for t in trunks))
         release_freed_memory()
         return SideMap(
             side=side, frame_id=getattr(cfg.frames, f"odom_{side}"), intrinsics=intr,
@@ -298,6 +306,22 @@ def release_freed_memory() -> None:
         pass
 
 
+# A trunk detector: (colour (H, W, 3) uint8, stamp s) -> its detections, or None when it could not answer
+# (a detector node that is down): the keyframe is then not cleaned and the trunks near it are flagged.
+Detect = Callable[[np.ndarray, float], "list | None"]
+DETECTOR_UNAVAILABLE = "detector_unavailable_nearby"  # a trunk flag
+
+
+def flag_trunks_near(trunks: list[TrunkLandmark], centres: np.ndarray, radius_m: float) -> None:
+    """Flag the trunks whose base is within radius_m of any of these camera centres (C, 3) m, odom: keyframes
+    the detector did not see, so the trunk may have fewer views than it should (and a tree seen only from
+    them is missing)."""
+    for lm in trunks:
+        if len(centres) and np.min(np.linalg.norm(centres - lm.base, axis=1)) <= radius_m:
+            if DETECTOR_UNAVAILABLE not in lm.flags:
+                lm.flags.append(DETECTOR_UNAVAILABLE)
+
+
 def trunk_detector(cfg: OrchardConfig, side: str):
     """The configured source of trunk masks for one side: `detect(color, stamp) -> list[Detection]`."""
     tp = cfg.trunks
@@ -325,9 +349,11 @@ class TrunkViews:
     cropped around the detections (ImagePatch). Frames are dropped as they go: memory grows with the trunks
     seen, not with the row's frames."""
 
-    def __init__(self, cfg: OrchardConfig, side: str, stamps: np.ndarray, poses: np.ndarray) -> None:
+    def __init__(self, cfg: OrchardConfig, side: str, stamps: np.ndarray, poses: np.ndarray,
+                 detect: Detect | None = None) -> None:
         self.cfg, self.stamps, self.poses = cfg, stamps, poses
-        self.detect = trunk_detector(cfg, side) if cfg.trunks.source != "off" else None
+        self.detect = None if cfg.trunks.source == "off" else (detect or trunk_detector(cfg, side))
+        self.unavailable: list[int] = []  # keyframes the detector could not answer for
         self.views: list[TrunkView] = []
         self.seconds = 0.0  # s spent in the detector and cropping
         self._last: np.ndarray | None = None
@@ -341,8 +367,12 @@ class TrunkViews:
             return False
         self._last = c
         t0 = time.perf_counter()
-        dets = [d for d in self.detect(color, float(self.stamps[k])) if d.class_id == CLASS_TRUNK]
+        found = self.detect(color, float(self.stamps[k]))
         self.seconds += time.perf_counter() - t0
+        if found is None:
+            self.unavailable.append(k)
+            return False
+        dets = [d for d in found if d.class_id == CLASS_TRUNK]
         if dets:
             self._detections[k] = dets
         return bool(dets)

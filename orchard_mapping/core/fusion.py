@@ -192,15 +192,26 @@ class TsdfFusion:
         self._mesh_empty = False
         self._scene_near = None
 
+    def _build_scene(self, centres: np.ndarray | None) -> o3d.t.geometry.RaycastingScene | None:
+        """A ray-casting scene of the fused surface (only the triangles with a vertex within depth_max + sdf_trunc
+        of the camera centres (C, 3) m, odom, if given); None when there is no surface."""
+        mesh = self._vbg.extract_triangle_mesh(self.min_weight) if self._vbg.hashmap().size() else None
+        if mesh is None or mesh.triangle.indices.shape[0] == 0:
+            return None
+        v = mesh.vertex.positions.numpy().astype(np.float32)  # (V, 3)
+        tri = mesh.triangle.indices.numpy()  # (T, 3)
+        if centres is not None:
+            tri = tri[_near_any(v, centres, self.depth_max_m + self.sdf_trunc_m)[tri].any(axis=1)]
+            if not len(tri):
+                return None
+        scene = o3d.t.geometry.RaycastingScene()
+        scene.add_triangles(o3c.Tensor(v), o3c.Tensor(np.ascontiguousarray(tri, np.uint32)))
+        return scene
+
     def _scene(self) -> o3d.t.geometry.RaycastingScene | None:
         if self._mesh_scene is None and not self._mesh_empty:
-            mesh = self._vbg.extract_triangle_mesh(self.min_weight) if self._vbg.hashmap().size() else None
-            if mesh is None or mesh.triangle.indices.shape[0] == 0:
-                self._mesh_empty = True
-                return None
-            scene = o3d.t.geometry.RaycastingScene()
-            scene.add_triangles(mesh.vertex.positions.to(o3c.float32), mesh.triangle.indices.to(o3c.uint32))
-            self._mesh_scene = scene
+            self._mesh_scene = self._build_scene(None)
+            self._mesh_empty = self._mesh_scene is None
         return self._mesh_scene
 
     def focus(self, centres: np.ndarray | None) -> None:
@@ -213,18 +224,7 @@ class TsdfFusion:
         c = np.asarray(centres, np.float32).reshape(-1, 3)
         if self._scene_near is not None and self._scene_near[0] == c.tobytes():
             return
-        mesh = self._vbg.extract_triangle_mesh(self.min_weight) if self._vbg.hashmap().size() else None
-        scene = None
-        if mesh is not None and mesh.triangle.indices.shape[0]:
-            v = mesh.vertex.positions.numpy().astype(np.float32)  # (V, 3)
-            tri = mesh.triangle.indices.numpy()  # (T, 3)
-            reach = self.depth_max_m + self.sdf_trunc_m
-            near_v = _near_any(v, c, reach)  # (V,)
-            tri = tri[near_v[tri].any(axis=1)]
-            if len(tri):
-                scene = o3d.t.geometry.RaycastingScene()
-                scene.add_triangles(o3c.Tensor(v), o3c.Tensor(np.ascontiguousarray(tri, np.uint32)))
-        self._scene_near = (c.tobytes(), scene)
+        self._scene_near = (c.tobytes(), self._build_scene(c))
 
     def retire_blocks(self, keep: np.ndarray, radius_m: float) -> tuple[np.ndarray, np.ndarray]:
         """Free the blocks whose centres are farther than radius_m from every point of keep (C, 3) m, odom,
@@ -513,7 +513,7 @@ def fuse_side(frames: Iterable[tuple[np.ndarray, np.ndarray, np.ndarray]], intr:
     cleaned: dict[int, np.ndarray] = {}
     color_key: dict[int, np.ndarray] = {}  # keyframe -> its colour image (keep_color)
     chunks: list[tuple[np.ndarray, np.ndarray]] = []  # the cloud, extracted as the volume moves on
-    poses: list[np.ndarray] = []
+    poses: list[np.ndarray] = []  # (4, 4) per frame, mode "local" only
     seconds = 0.0
     frames_done = 0
     peak = [0]  # the most blocks held at once
@@ -564,7 +564,8 @@ def fuse_side(frames: Iterable[tuple[np.ndarray, np.ndarray, np.ndarray]], intr:
         d = _check_depth(depth, intr, f"frame {i}")
         if last_retired[0] is None:
             last_retired[0] = here
-        poses.append(Tc)
+        if mode == "local":
+            poses.append(Tc)  # the nearest frames of each keyframe are chosen from all of them
         if (key_set is None or i in key_set) and (
                 last_cleaned is None or np.linalg.norm(here - last_cleaned) >= cleaned_spacing_m):
             last_cleaned = here

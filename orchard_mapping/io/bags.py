@@ -54,6 +54,7 @@ __all__ = [
     "RGBDSequence",
     "RawMessage",
     "camera_intrinsics",
+    "decode_color",
     "decode_frame",
     "describe_bag",
     "iter_messages",
@@ -540,6 +541,12 @@ def camera_intrinsics(msg: Any, width: int, height: int, source: str, topic: str
         raise CalibrationError(f"CameraInfo is {intr.width}x{intr.height} (fields 'width', 'height') but colour "
                                f"images are {width}x{height}", bag=source, topic=topic)
     return CameraIntrinsics(width, height, intr.fx, intr.fy, intr.cx, intr.cy, intr.distortion, intr.frame_id)
+
+
+def decode_color(msg: Any, source: str = "topic", topic: str = "") -> np.ndarray:
+    """(H, W, 3) uint8 RGB of a colour sensor_msgs/Image (rclpy's or rosbags'); BagFormatError when malformed."""
+    _check_image(msg, COLOR_ENCODINGS, "colour", 0, source, topic)
+    return _decode_color(msg)
 
 
 def decode_frame(color_msg: Any, depth_msg: Any | None, intr: CameraIntrinsics, index: int, side: str,

@@ -32,6 +32,7 @@ class TrunkRecord:
     radius_stddev: float  # m, NaN when unknown
     fit_rmse: float  # m, NaN when unknown
     inlier_count: int
+    flags: tuple[str, ...] = ()  # the landmark's flags (trunks.json)
 
     @staticmethod
     def from_landmark(lm: TrunkLandmark, side: str) -> "TrunkRecord":
@@ -39,7 +40,7 @@ class TrunkRecord:
         return TrunkRecord(lm.id, side, _t3(lm.base), _t3(lm.axis),
                            band.cylinder.radius if band is not None else math.nan, float(lm.length_m), math.nan,
                            band.rmse_3d_m if band is not None else math.nan,
-                           band.inliers_3d if band is not None else lm.n_points)
+                           band.inliers_3d if band is not None else lm.n_points, tuple(lm.flags))
 
 
 @dataclass(frozen=True)
@@ -85,6 +86,7 @@ def _fill_trunk(m, r: TrunkRecord) -> None:
     m.axis.x, m.axis.y, m.axis.z = r.axis
     m.radius, m.length, m.radius_stddev, m.fit_rmse = r.radius, r.length, r.radius_stddev, r.fit_rmse
     m.inlier_count = int(r.inlier_count)
+    m.flags = list(r.flags)
 
 
 def _fill_ground(m, r: GroundRecord) -> None:
@@ -104,7 +106,7 @@ def trunks_from_msg(msg) -> tuple[str, float, list[TrunkRecord]]:
     """(frame id, stamp s, records) of a TrunkCylinderArray."""
     recs = [TrunkRecord(int(m.tree_id), str(m.side), (m.base.x, m.base.y, m.base.z), (m.axis.x, m.axis.y, m.axis.z),
                         float(m.radius), float(m.length), float(m.radius_stddev), float(m.fit_rmse),
-                        int(m.inlier_count)) for m in msg.cylinders]
+                        int(m.inlier_count), tuple(str(f) for f in m.flags)) for m in msg.cylinders]
     return msg.header.frame_id, msg.header.stamp.sec + 1e-9 * msg.header.stamp.nanosec, recs
 
 

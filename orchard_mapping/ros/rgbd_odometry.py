@@ -47,6 +47,7 @@ from orchard_mapping.ros.messages import TrunkRecord, ground_records, grounds_to
 from orchard_mapping.ros.params import ConfigParameters
 from orchard_mapping.ros.player import SIDE_END
 from orchard_mapping.ros.qos import CAMERA, LATCHED
+from orchard_mapping.ros.remote_detector import RemoteDetector
 from orchard_mapping.ros.spin import StopNode, run_node
 
 __all__ = ["RGBDOdometryNode", "main"]
@@ -92,6 +93,9 @@ class RGBDOdometryNode(Node):
         self.declare_parameter("spool_dir", "")  # where keyframe images wait for fusion ("": the system's temp)
         # replaying bags: exit (code 0) once this many side maps are published (0: run until stopped)
         self.declare_parameter("exit_after_sides", 0)
+        # "node": the trunk_detector node answers (the graph); "local": the configured detector in this process
+        self.declare_parameter("detector", "local")
+        self._detectors: dict[str, RemoteDetector] = {}
         cfg = self.params.config
         topics = cfg.input.topics
         self.counts = _Counts()
@@ -143,7 +147,8 @@ class RGBDOdometryNode(Node):
         msg = String()
         msg.data = json.dumps({"colour": c.colour, "depth": c.depth, "paired": c.paired, "unpaired": c.unpaired,
                                "missed": c.missed, "processed": c.processed, "finished": c.finished,
-                               "side_map_latency_s": c.side_map_latency_s, "errors": self.errors})
+                               "side_map_latency_s": c.side_map_latency_s, "errors": self.errors,
+                               "detector_unanswered": {s: d.unanswered for s, d in self._detectors.items()}})
         self._status.publish(msg)
 
     # -- input (executor thread): decode, pair, queue
@@ -252,7 +257,11 @@ class RGBDOdometryNode(Node):
         self._path[side] = PathMsg()
         _stamp(self._path[side].header, 0.0, getattr(cfg.frames, f"odom_{side}"))
         self.get_logger().info(f"{side} side: tracking")
-        return SideSession(side, intr, cfg, SpooledKeyframeImages(spool), bag=f"{side} side (camera topics)")
+        detect = None
+        if self.get_parameter("detector").value == "node":
+            detect = self._detectors.setdefault(side, RemoteDetector(self, side, cfg.frames.camera))
+        return SideSession(side, intr, cfg, SpooledKeyframeImages(spool), bag=f"{side} side (camera topics)",
+                           detect=detect)
 
     def _publish_pose(self, side: str, stamp: float, T: np.ndarray, keyframe: bool) -> None:
         if not np.isfinite(T).all():

@@ -22,6 +22,8 @@ HERE = Path(__file__).resolve().parent
 TIMEOUT_S = 30.0
 EXPECTED_TYPES = {
     "TrunkCylinder",
+    "TrunkDetection",
+    "TrunkDetectionArray",
     "TrunkCylinderArray",
     "LocalGround",
     "LocalGroundArray",
@@ -59,6 +61,9 @@ def _value(type_name: str, seed: int):
     if type_name.startswith("sequence<"):
         inner = type_name[len("sequence<") : -1].split(",")[0]
         return [_value(inner, seed + k) for k in range(2)]
+    if type_name.endswith("]"):  # a fixed-size array, e.g. float[4]
+        inner, n = type_name[:-1].split("[")
+        return [_value(inner, seed + k) for k in range(int(n))]
     if type_name in ("double", "float"):
         return 0.25 + 1.5 * seed
     if type_name in ("int8", "int16", "int32", "int64"):

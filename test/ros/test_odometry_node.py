@@ -59,3 +59,52 @@ def test_launched_graph_on_bags_gives_the_offline_trunks(standard_row, tmp_path)
                 assert abs(2 * radius - t.diameter_m) < 1e-3, (side, radius, t.diameter_m)
         path = [m for _, m in iter_messages(rec, f"/orchard/{side}/keyframes")][-1]
         assert len(path.poses) > 20 and path.header.frame_id == f"odom_{side}"
+
+
+def test_a_killed_trunk_detector_is_restarted_and_the_trunks_it_missed_are_flagged(standard_row, tmp_path):
+    """The trunk detector is killed (SIGKILL) after it answered 10 requests of the front side: the supervisor
+    reports it and starts it again, the run still ends with the side map, and the trunks near the keyframes
+    that went unanswered meanwhile carry the flag `detector_unavailable_nearby`."""
+    import os
+    import signal
+    import subprocess
+    import sys
+    from pathlib import Path
+
+    sim, _ = standard_row
+    params = yaml.safe_load((config_dir() / "ros_params.yaml").read_text())
+    params["/**"]["ros__parameters"]["trunks"].update(source="masks", masks_dir=str(sim / "masks"))
+    (tmp_path / "params.yaml").write_text(yaml.safe_dump(params))
+    rec = tmp_path / "recorded"
+    proc = subprocess.Popen([sys.executable, "-m", "orchard_mapping.cli.main", "launch", "--bag", str(sim / "front"),
+                             "--record", str(rec), "--params", str(tmp_path / "params.yaml")],
+                            stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True)
+    lines, killed = [], None
+    try:
+        for line in proc.stdout:
+            lines.append(line)
+            if killed is None and "[trunk_detector]" in line and "answered 10 requests" in line:
+                pids = [int(p.name) for p in Path("/proc").iterdir() if p.name.isdigit()
+                        and b"orchard_mapping.ros.trunk_detector" in _cmdline(p)]
+                assert len(pids) == 1, pids
+                killed = pids[0]
+                os.kill(killed, signal.SIGKILL)
+        rc = proc.wait(timeout=600)
+    finally:
+        if proc.poll() is None:
+            proc.kill()
+    text = "".join(lines)
+    assert killed is not None, text[-4000:]
+    assert rc == 0, text[-4000:]
+    assert "trunk_detector died (exit code -9)" in text and "trunk_detector restarted" in text, text[-4000:]
+    status = [json.loads(m.data) for _, m in iter_messages(rec, "/orchard/odometry/status")][-1]
+    assert status["finished"] == ["front"] and status["detector_unanswered"]["front"] > 0, status
+    msg = [m for _, m in iter_messages(rec, "/orchard/front/trunk_cylinders")][-1]
+    assert msg.cylinders and any("detector_unavailable_nearby" in c.flags for c in msg.cylinders), msg.cylinders
+
+
+def _cmdline(p) -> bytes:
+    try:
+        return (p / "cmdline").read_bytes()
+    except OSError:
+        return b""

@@ -294,8 +294,10 @@ def _our_messages() -> dict[str, Any]:
         radius_stddev=float("nan"),
         fit_rmse=0.004,
         inlier_count=812,
+        flags=[],
     )
-    cyl2 = dataclasses.replace(cyl, tree_id=-1, side="back", radius=0.07, radius_stddev=0.002)
+    cyl2 = dataclasses.replace(cyl, tree_id=-1, side="back", radius=0.07, radius_stddev=0.002,
+                               flags=["detector_unavailable_nearby"])
     ground = t["orchard_mapping_msgs/msg/LocalGround"](
         header=hdr,
         tree_id=7,
@@ -338,6 +340,10 @@ def _our_messages() -> dict[str, Any]:
         "TreeTraits": traits,
         "TreeTraitsArray": t["orchard_mapping_msgs/msg/TreeTraitsArray"](header=hdr, trees=[traits]),
         "SideMerge": merge,
+        "TrunkDetectionArray": t["orchard_mapping_msgs/msg/TrunkDetectionArray"](
+            header=hdr, image_width=64, image_height=48, detections=[t["orchard_mapping_msgs/msg/TrunkDetection"](
+                class_id=1, score=0.5, box=np.array([1.0, 2.0, 30.0, 40.0], np.float32), mask_x=1, mask_y=2,
+                mask_width=2, mask_height=2, mask=np.array([1, 0, 1, 1], np.uint8))]),
     }
 
 

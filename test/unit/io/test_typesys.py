@@ -16,6 +16,8 @@ OURS = [
     "TreeTraitsArray",
     "TrunkCylinder",
     "TrunkCylinderArray",
+    "TrunkDetection",
+    "TrunkDetectionArray",
 ]
 
 

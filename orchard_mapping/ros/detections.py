@@ -1,0 +1,50 @@
+"""Trunk detections <-> orchard_mapping_msgs/TrunkDetectionArray (what the trunk detector node answers).
+
+A mask travels cropped to the extent of its pixels (lossless: nothing of the instance lies outside it) and
+comes back as the full-image boolean mask `core.detection.Detection` holds."""
+
+from __future__ import annotations
+
+import math
+
+import numpy as np
+
+from orchard_mapping.core.detection import Detection
+
+__all__ = ["detections_from_msg", "detections_to_msg"]
+
+
+def detections_to_msg(dets: list[Detection], stamp: float, frame_id: str, width: int, height: int):
+    from orchard_mapping_msgs.msg import TrunkDetection, TrunkDetectionArray
+
+    out = TrunkDetectionArray()
+    out.header.frame_id = frame_id
+    sec = math.floor(stamp)
+    out.header.stamp.sec = int(sec)
+    out.header.stamp.nanosec = min(int(round((stamp - sec) * 1e9)), 999_999_999)
+    out.image_width, out.image_height = int(width), int(height)
+    for d in dets:
+        m = TrunkDetection()
+        m.class_id, m.score = int(d.class_id), float(d.score)
+        m.box = np.asarray(d.box, np.float32)
+        mask = np.asarray(d.mask, bool)
+        rows, cols = np.nonzero(mask.any(axis=1))[0], np.nonzero(mask.any(axis=0))[0]
+        if len(rows):
+            y0, y1, x0, x1 = int(rows[0]), int(rows[-1]) + 1, int(cols[0]), int(cols[-1]) + 1
+            m.mask_x, m.mask_y, m.mask_width, m.mask_height = x0, y0, x1 - x0, y1 - y0
+            m.mask = mask[y0:y1, x0:x1].astype(np.uint8).tobytes()
+        out.detections.append(m)
+    return out
+
+
+def detections_from_msg(msg) -> list[Detection]:
+    """The detections of a TrunkDetectionArray, each with its full-image (H, W) bool mask."""
+    h, w = int(msg.image_height), int(msg.image_width)
+    dets = []
+    for m in msg.detections:
+        mask = np.zeros((h, w), bool)
+        if m.mask_width and m.mask_height:
+            crop = np.frombuffer(memoryview(m.mask), np.uint8).reshape(m.mask_height, m.mask_width)
+            mask[m.mask_y:m.mask_y + m.mask_height, m.mask_x:m.mask_x + m.mask_width] = crop > 0
+        dets.append(Detection(int(m.class_id), float(m.score), np.asarray(m.box, float), mask))
+    return dets
