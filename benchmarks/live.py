@@ -3,7 +3,8 @@
 For each replay rate: the player replays both sides of a simulated `standard` row into the graph (each
 node its own process, loopback DDS); the recorder keeps the odometry node's status, from which the table
 shows, per rate: colour images sent (counted in the bags), received by the odometry node, lost (sent -
-received), the losses the node saw by itself (gaps in the camera's rhythm), frames tracked, the time from
+received), the losses the node reported (against the player's count after each bag; of them, those it saw
+by itself as gaps in the camera's rhythm), frames tracked, the time from
 each side's end to its side map, and the whole replay's wall time.
 
 Usage:
@@ -65,7 +66,8 @@ def replay(sim: Path, rate: float, work: Path, masks: bool) -> dict:
     sent = sum(len(t) for t in stamps.values())
     duration = sum((t[-1] - t[0]) / 1e9 for t in stamps.values())
     return {"rate": rate, "sent": sent, "received": status["colour"], "lost": sent - status["colour"],
-            "missed_seen_by_node": status["missed"], "tracked": sum(status["processed"].values()),
+            "lost_reported": status["lost_vs_player"], "gaps_seen": status["missed"],
+            "tracked": sum(status["processed"].values()),
             "side_map_latency_s": status["side_map_latency_s"], "recording_s": duration, "wall_s": wall,
             "errors": status["errors"]}
 
@@ -85,13 +87,13 @@ def main() -> None:
                                    args.masks)
     rows = [replay(sim, r, args.workdir, args.masks) for r in args.rates]
     t = Table(title=f"node graph on a replayed {sim.name} row (orchard-map launch), 2 cores")
-    for col in ("rate", "colour sent", "received", "lost", "lost, seen by node", "tracked",
+    for col in ("rate", "colour sent", "received", "lost", "lost, reported by node", "of which gaps seen", "tracked",
                 "side end -> map front s", "side end -> map back s", "recording s", "wall s"):
         t.add_column(col, justify="right")
     for r in rows:
         lat = r["side_map_latency_s"]
         t.add_row(f"{r['rate']:g}x", str(r["sent"]), str(r["received"]), str(r["lost"]),
-                  str(r["missed_seen_by_node"]), str(r["tracked"]), f"{lat.get('front', float('nan')):.1f}",
+                  str(r["lost_reported"]), str(r["gaps_seen"]), str(r["tracked"]), f"{lat.get('front', float('nan')):.1f}",
                   f"{lat.get('back', float('nan')):.1f}", f"{r['recording_s']:.1f}", f"{r['wall_s']:.1f}")
     Console(width=200).print(t)
     if args.json:

@@ -37,13 +37,17 @@ from orchard_mapping.io.bags import describe_bag, iter_raw
 from orchard_mapping.io.results import atomic_write_text
 from orchard_mapping.ros.qos import LATCHED, REPLAY
 
-__all__ = ["SIDE_END", "BagPlayer", "main", "message_class"]
+__all__ = ["SIDE_END", "STATUS_TOPIC", "BagPlayer", "main", "message_class"]
 
 SIDE_END = "end"  # published on the side topic after each bag: the recording of a side is over
 # s: a side change is published this long after the last message before it and before the first after it,
 # so a subscriber has taken every image of one side before it hears of the next (the side and the images
 # travel on different topics, and an executor may take them in either order)
 SIDE_GUARD_S = 0.5
+# std_msgs/String JSON after each bag: the bag, its side and the messages published per topic so far, so that
+# a subscriber counts what it lost (the odometry node reports it: losses at a side's start or end leave no
+# gap in the camera's rhythm to see them by)
+STATUS_TOPIC = "/orchard/player/status"
 
 
 class PlayerError(OrchardMappingError):
@@ -74,6 +78,7 @@ class BagPlayer(Node):
         self.topics = topics
         self.published: Counter[str] = Counter()
         self._side_pub = self.create_publisher(String, topics.side, LATCHED)
+        self._status_pub = self.create_publisher(String, STATUS_TOPIC, LATCHED)
         # every topic's publisher exists before the first message, so that subscribers (and a recorder
         # that follows the graph) can match before the replay starts
         self._pubs: dict[str, object] = {}
@@ -132,6 +137,10 @@ class BagPlayer(Node):
                 continue
             self._pubs[m.topic].publish(m.data)
             self.published[m.topic] += 1
+        self._pause(SIDE_GUARD_S)
+        status = String()
+        status.data = json.dumps({"bag": str(bag), "side": side, "published": dict(self.published)})
+        self._status_pub.publish(status)
         self._say_side(SIDE_END)
 
 

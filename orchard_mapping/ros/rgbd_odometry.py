@@ -45,7 +45,7 @@ from orchard_mapping.pipeline import SIDES, SideSession, SpooledKeyframeImages, 
 from orchard_mapping.ros.clouds import cloud_to_msg
 from orchard_mapping.ros.messages import TrunkRecord, ground_records, grounds_to_msg, trunks_to_msg
 from orchard_mapping.ros.params import ConfigParameters
-from orchard_mapping.ros.player import SIDE_END
+from orchard_mapping.ros.player import SIDE_END, STATUS_TOPIC as PLAYER_STATUS
 from orchard_mapping.ros.qos import CAMERA, LATCHED
 from orchard_mapping.ros.remote_detector import RemoteDetector
 from orchard_mapping.ros.spin import StopNode, run_node
@@ -82,6 +82,8 @@ class _Counts:
     # colour images the camera's own rhythm says are missing (a gap of n periods: n - 1 missed), counted
     # from the stamps received: frames DDS lost never reach the node, but their absence shows
     missed: int = 0
+    # colour images a bag player says it sent and this node never received (all bags so far)
+    lost_vs_player: int = 0
     side_map_latency_s: dict[str, float] = field(default_factory=dict)  # s, a side's end -> its map published
 
 
@@ -116,6 +118,7 @@ class RGBDOdometryNode(Node):
         self.create_subscription(Image, topics.depth, self._on_depth, CAMERA)
         self.create_subscription(CameraInfo, topics.camera_info, self._on_info, CAMERA)
         self.create_subscription(String, topics.side, self._on_side, LATCHED)
+        self.create_subscription(String, PLAYER_STATUS, self._on_player, LATCHED)
         self._threads = [threading.Thread(target=self._track_loop, daemon=True),
                          threading.Thread(target=self._finish_loop, daemon=True)]
         for t in self._threads:
@@ -146,7 +149,8 @@ class RGBDOdometryNode(Node):
         c = self.counts
         msg = String()
         msg.data = json.dumps({"colour": c.colour, "depth": c.depth, "paired": c.paired, "unpaired": c.unpaired,
-                               "missed": c.missed, "processed": c.processed, "finished": c.finished,
+                               "missed": c.missed, "lost_vs_player": c.lost_vs_player,
+                               "processed": c.processed, "finished": c.finished,
                                "side_map_latency_s": c.side_map_latency_s, "errors": self.errors,
                                "detector_unanswered": {s: d.unanswered for s, d in self._detectors.items()}})
         self._status.publish(msg)
@@ -155,6 +159,7 @@ class RGBDOdometryNode(Node):
 
     def _on_info(self, msg: CameraInfo) -> None:
         self._info = msg
+        self._pair()  # frames that came before the first CameraInfo (another topic: either may come first)
 
     def _on_side(self, msg: String) -> None:
         side = msg.data.strip()
@@ -165,6 +170,19 @@ class RGBDOdometryNode(Node):
         self._last_colour_ns = None  # a new recording: its stamps need not follow the last one's
         self._steps.clear()
         self._work.put(("side", side))
+
+    def _on_player(self, msg: String) -> None:
+        """A bag player's count of what it published: the colour images this node never received are lost."""
+        try:
+            sent = int(json.loads(msg.data)["published"].get(self.params.config.input.topics.color, 0))
+        except (ValueError, KeyError, TypeError, AttributeError):
+            self.get_logger().warning(f"unreadable player status: {msg.data[:200]!r}")
+            return
+        lost = sent - self.counts.colour
+        if lost > self.counts.lost_vs_player:
+            self.get_logger().warning(f"{lost} colour image(s) the player sent never arrived")
+        self.counts.lost_vs_player = max(lost, 0)
+        self._publish_status()
 
     def _on_colour(self, msg: Image) -> None:
         self.counts.colour += 1
@@ -199,7 +217,7 @@ class RGBDOdometryNode(Node):
         """Give each colour image the depth image nearest in stamp within input.max_pair_dt_s (ties: the
         earlier), as `read_rgbd` pairs a bag's; wait while a nearer depth may still come."""
         tol = round(self.params.config.input.max_pair_dt_s * 1e9)
-        while self._colour:
+        while self._colour and (self._info is not None or flush):
             c_ns, colour = self._colour[0]
             near = [(abs(d_ns - c_ns), d_ns, d) for d_ns, d in self._depth if abs(d_ns - c_ns) <= tol]
             later = any(d_ns >= c_ns + tol for d_ns, _ in self._depth)
