@@ -30,6 +30,12 @@ setup(
     entry_points={
         "console_scripts": [
             "orchard-map = orchard_mapping.cli.main:app",
+            # the nodes, for `ros2 run` / `ros2 launch` on a full ROS install (orchard-map launch runs them
+            # with python -m)
+            "rgbd_odometry = orchard_mapping.ros.rgbd_odometry:main",
+            "trunk_detector = orchard_mapping.ros.trunk_detector:main",
+            "bag_player = orchard_mapping.ros.player:main",
+            "recorder = orchard_mapping.ros.recorder:main",
         ],
     },
 )

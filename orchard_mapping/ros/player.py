@@ -29,6 +29,7 @@ from pathlib import Path
 
 import rclpy
 from rclpy.node import Node
+from rclpy.utilities import remove_ros_args
 from std_msgs.msg import String
 
 from orchard_mapping.config import TopicsConfig
@@ -160,7 +161,8 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--side", action="append", choices=("front", "back"), help="the side each bag records")
     ap.add_argument("--wait", type=float, default=20.0, help="s to wait for subscribers to the camera topics")
     ap.add_argument("--stats", type=Path, help="write what was published (JSON) here when done")
-    args = ap.parse_args(argv)
+    # `ros2 run` / `ros2 launch` append --ros-args ...: those are rclpy's (rclpy.init reads them), not ours
+    args = ap.parse_args(remove_ros_args(["prog", *(sys.argv[1:] if argv is None else argv)])[1:])
     rclpy.init()
     try:
         try:

@@ -17,6 +17,7 @@ from collections import Counter
 from pathlib import Path
 
 from rclpy.node import Node
+from rclpy.utilities import remove_ros_args
 from rclpy.qos import DurabilityPolicy, QoSProfile, ReliabilityPolicy
 
 from orchard_mapping.errors import BagError
@@ -86,7 +87,8 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("out", type=Path, help="the bag folder to write")
     ap.add_argument("--prefix", action="append", help="record topics under this prefix (default /orchard)")
     ap.add_argument("--overwrite", action="store_true")
-    args = ap.parse_args(argv)
+    # `ros2 run` / `ros2 launch` append --ros-args ...: those are rclpy's (rclpy.init reads them), not ours
+    args = ap.parse_args(remove_ros_args(["prog", *(sys.argv[1:] if argv is None else argv)])[1:])
     return run_node(lambda: Recorder(args.out, tuple(args.prefix or ["/orchard"]), args.overwrite), "recorder",
                     finish=lambda node: node.close())
 
