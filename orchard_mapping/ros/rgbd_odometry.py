@@ -146,13 +146,16 @@ class RGBDOdometryNode(Node):
         return self._pubs[side]
 
     def _publish_status(self) -> None:
+        """Called from the executor and both worker threads: the mappings are copied first (dict() and list()
+        copy under the GIL in one step), so a side starting meanwhile cannot change them mid-iteration."""
         c = self.counts
+        detectors = list(self._detectors.items())
         msg = String()
         msg.data = json.dumps({"colour": c.colour, "depth": c.depth, "paired": c.paired, "unpaired": c.unpaired,
                                "missed": c.missed, "lost_vs_player": c.lost_vs_player,
-                               "processed": c.processed, "finished": c.finished,
-                               "side_map_latency_s": c.side_map_latency_s, "errors": self.errors,
-                               "detector_unanswered": {s: d.unanswered for s, d in self._detectors.items()}})
+                               "processed": dict(c.processed), "finished": list(c.finished),
+                               "side_map_latency_s": dict(c.side_map_latency_s), "errors": list(self.errors),
+                               "detector_unanswered": {s: d.unanswered for s, d in detectors}})
         self._status.publish(msg)
 
     # -- input (executor thread): decode, pair, queue
