@@ -26,6 +26,7 @@ import queue
 import sys
 import threading
 import time
+import traceback
 from collections import deque
 from dataclasses import dataclass, field
 
@@ -85,6 +86,7 @@ class _Counts:
     # colour images a bag player says it sent and this node never received (all bags so far)
     lost_vs_player: int = 0
     side_map_latency_s: dict[str, float] = field(default_factory=dict)  # s, a side's end -> its map published
+    failed: list[str] = field(default_factory=list)  # sides whose map could not be made
 
 
 class RGBDOdometryNode(Node):
@@ -128,7 +130,7 @@ class RGBDOdometryNode(Node):
 
     def _check_done(self) -> None:
         if self._done.is_set():
-            raise StopNode()
+            raise StopNode(1 if self.counts.failed else 0)
 
     # -- publishers
 
@@ -154,6 +156,7 @@ class RGBDOdometryNode(Node):
         msg.data = json.dumps({"colour": c.colour, "depth": c.depth, "paired": c.paired, "unpaired": c.unpaired,
                                "missed": c.missed, "lost_vs_player": c.lost_vs_player,
                                "processed": dict(c.processed), "finished": list(c.finished),
+                               "failed": list(c.failed),
                                "side_map_latency_s": dict(c.side_map_latency_s), "errors": list(self.errors),
                                "detector_unanswered": {s: d.unanswered for s, d in detectors}})
         self._status.publish(msg)
@@ -266,6 +269,10 @@ class RGBDOdometryNode(Node):
             except OrchardMappingError as err:
                 self._error(str(err))
                 continue
+            except Exception as err:  # noqa: BLE001 - a bug must not stop the tracking thread silently
+                self._error(f"{side} side, frame at {_ns(colour.header) / 1e9:.3f} s: {type(err).__name__}: {err}")
+                self.get_logger().error(traceback.format_exc())
+                continue
             self.counts.processed[side] = self.counts.processed.get(side, 0) + 1
             self._publish_pose(side, frame.stamp, pose, new)
 
@@ -321,17 +328,26 @@ class RGBDOdometryNode(Node):
                                    "trunks")
             try:
                 sm = session.finish(Timings())
-            except OrchardMappingError as err:
-                self._error(f"{side} side: {err}")
+            except Exception as err:  # noqa: BLE001 - reported and counted; the node goes on with the next side
+                self._error(f"{side} side: no side map: {err}" if isinstance(err, OrchardMappingError)
+                            else f"{side} side: no side map: {type(err).__name__}: {err}")
+                if not isinstance(err, OrchardMappingError):
+                    self.get_logger().error(traceback.format_exc())
+                self.counts.failed.append(side)
+                self._check_wanted()
                 continue
             self.side_maps[side] = sm
             self._publish_side_map(sm)
             self.counts.finished.append(side)
             self.counts.side_map_latency_s[side] = round(time.monotonic() - ended, 3)
             self._publish_status()
-            wanted = self.get_parameter("exit_after_sides").value
-            if wanted and len(self.counts.finished) >= wanted:
-                self._done.set()
+            self._check_wanted()
+
+    def _check_wanted(self) -> None:
+        """Replaying bags: stop once every side expected has its map or has failed (exit code 1 if one failed)."""
+        wanted = self.get_parameter("exit_after_sides").value
+        if wanted and len(self.counts.finished) + len(self.counts.failed) >= wanted:
+            self._done.set()
             self.get_logger().info(f"{side} side map published: {len(sm.keyframe_poses)} keyframes, "
                                    f"{len(sm.cloud_points)} points, {len(sm.trunks)} trunks")
 

@@ -20,7 +20,12 @@ __all__ = ["StopNode", "run_node"]
 
 
 class StopNode(Exception):
-    """Raised from a node's callback when its work is done: the spin ends and the process exits with 0."""
+    """Raised from a node's callback when its work is done: the spin ends and the process exits with `code`
+    (0: done; non-zero: done, but part of the work failed, which the supervisor then reports)."""
+
+    def __init__(self, code: int = 0) -> None:
+        super().__init__(code)
+        self.code = code
 
 
 def run_node(make: Callable[[], Node], name: str, finish: Callable[[Node], None] | None = None) -> int:
@@ -33,8 +38,10 @@ def run_node(make: Callable[[], Node], name: str, finish: Callable[[Node], None]
     try:
         node = make()
         rclpy.spin(node)
-    except (KeyboardInterrupt, ExternalShutdownException, StopNode):
+    except (KeyboardInterrupt, ExternalShutdownException):
         pass
+    except StopNode as stop:
+        code = stop.code
     except OrchardMappingError as err:
         print(f"{name}: {err}", file=sys.stderr)
         code = 2
