@@ -29,18 +29,9 @@ from rich.table import Table
 
 from orchard_mapping.io.bags import iter_messages, iter_raw
 from orchard_mapping.resources import config_dir
+from scale import simulate_row  # benchmarks/scale.py, beside this file
 
 COLOUR = "/camera/color/image_raw"
-
-
-def simulate_row(trees: int, seed: int, out: Path, masks: bool) -> Path:
-    if not (out / "ground_truth.json").is_file():
-        cmd = [sys.executable, "-m", "orchard_mapping.cli.main", "simulate", "--scenario", "standard", "--trees",
-               str(trees), "--seed", str(seed), "--set", "camera.rate_hz=15", "--out", str(out), "--force"]
-        if masks:
-            cmd += ["--set", "masks_every=1"]
-        subprocess.run(cmd, check=True)
-    return out
 
 
 def replay(sim: Path, rate: float, work: Path, masks: bool) -> dict:
@@ -83,8 +74,9 @@ def main() -> None:
     ap.add_argument("--json", type=Path)
     args = ap.parse_args()
     args.workdir.mkdir(parents=True, exist_ok=True)
-    sim = args.sim or simulate_row(args.trees, args.seed, args.workdir / f"standard_{args.trees}trees_seed{args.seed}",
-                                   args.masks)
+    sim = args.sim or simulate_row(args.trees, 15.0, args.seed,
+                                   args.workdir / f"standard_{args.trees}trees_seed{args.seed}",
+                                   ["masks_every=1"] if args.masks else [])
     rows = [replay(sim, r, args.workdir, args.masks) for r in args.rates]
     t = Table(title=f"node graph on a replayed {sim.name} row (orchard-map launch), 2 cores")
     for col in ("rate", "colour sent", "received", "lost", "lost, reported by node", "of which gaps seen", "tracked",

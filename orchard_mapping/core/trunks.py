@@ -35,7 +35,7 @@ from orchard_mapping.core.geometry import SlabIndex, transform_points
 from orchard_mapping.core.detection import CLASS_TRUNK, Detection
 from orchard_mapping.core.ground import GroundParams, LocalGroundFit, fit_local_ground, ground_neighbourhood
 from orchard_mapping.core.odometry import backproject
-from orchard_mapping.core.types import CameraIntrinsics, ImagePatch
+from orchard_mapping.core.types import CameraIntrinsics, ImagePatch, mask_bounds
 from orchard_mapping.errors import OrchardMappingError
 
 __all__ = [
@@ -250,14 +250,6 @@ _SLAB_MARGIN_M = 1.5
 _VIEW_MARGIN_PX = 12
 
 
-def _around(mask: np.ndarray, margin: int) -> tuple[int, int, int, int]:
-    """(r0, c0, r1, c1): the bounding box of mask's pixels (H, W) grown by margin px."""
-    rows, cols = np.flatnonzero(mask.any(axis=1)), np.flatnonzero(mask.any(axis=0))
-    if len(rows) == 0:
-        return 0, 0, 0, 0
-    return rows[0] - margin, cols[0] - margin, rows[-1] + 1 + margin, cols[-1] + 1 + margin
-
-
 def _normals(points: np.ndarray, radius: float = 0.02, knn: int = 20) -> np.ndarray:
     import open3d as o3d
 
@@ -417,7 +409,7 @@ def _model_trunk(lm_id: int, obs: list[tuple[TrunkView, Detection]], places: np.
                             axis)
         band_pixels.append(int((m & (depth > 0)).sum()))
         if m.sum() >= params.min_mask_pixels // 4:
-            rect = _around(m, _VIEW_MARGIN_PX + params.edge_snap_px)
+            rect = mask_bounds(m, _VIEW_MARGIN_PX + params.edge_snap_px)
             band_views.append(CylinderView(v.T_odom_cam, ImagePatch.crop(m, rect), ImagePatch.crop(depth, rect)))
     band: CylinderFit | None = None
     baseline: CylinderFit | None = None

@@ -66,6 +66,15 @@ class StampedTrajectory:
     frame_id: str = field(default="")
 
 
+def mask_bounds(mask: np.ndarray, margin: int = 0) -> tuple[int, int, int, int]:
+    """(r0, c0, r1, c1) px: the bounding box of a mask's pixels (H, W) grown by margin px (unclipped; all zero
+    for an empty mask). With ImagePatch.crop: a mask, or what is read around it, kept without loss."""
+    rows, cols = np.flatnonzero(mask.any(axis=1)), np.flatnonzero(mask.any(axis=0))
+    if len(rows) == 0:
+        return 0, 0, 0, 0
+    return int(rows[0]) - margin, int(cols[0]) - margin, int(rows[-1]) + 1 + margin, int(cols[-1]) + 1 + margin
+
+
 @dataclass(frozen=True, eq=False)
 class ImagePatch:
     """The part of an image (H, W[, C]) that a later stage reads, zero elsewhere: a keyframe's depth or mask

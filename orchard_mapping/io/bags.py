@@ -57,6 +57,7 @@ __all__ = [
     "decode_color",
     "decode_frame",
     "describe_bag",
+    "header_ns",
     "iter_messages",
     "iter_raw",
     "msg_header",
@@ -92,7 +93,8 @@ def _stamp_ns(stamp: float) -> int:
     return round(stamp * 1e9)
 
 
-def _header_ns(header: Any) -> int:
+def header_ns(header: Any) -> int:
+    """ns of a std_msgs/Header's stamp (rclpy's or rosbags')."""
     return int(header.stamp.sec) * 1_000_000_000 + int(header.stamp.nanosec)
 
 
@@ -191,17 +193,19 @@ class BagWriter:
 
     def write_message(self, topic: str, stamp: float, msg: Any, msgtype: str) -> None:
         """Write any registered message type (ours included); `stamp` (s) is the log time only."""
-        self._require_open()
+        conn = self._connection(topic, msgtype)
         try:
             data = self._store.serialize_cdr(msg, msgtype)
-        except KeyError as err:
-            raise BagError(f"unknown message type {msgtype!r}", bag=str(self.path), topic=topic) from err
         except Exception as err:  # rosbags raises assorted errors for a wrongly built message
             raise BagError(f"cannot serialize {msgtype}: {err}", bag=str(self.path), topic=topic) from err
-        self.write_raw(topic, stamp, data, msgtype)
+        self._write(conn, topic, stamp, data)
 
     def write_raw(self, topic: str, stamp: float, data: bytes, msgtype: str) -> None:
         """Write a message already serialised (CDR, as rclpy receives it with raw=True); `stamp` (s): log time."""
+        self._write(self._connection(topic, msgtype), topic, stamp, data)
+
+    def _connection(self, topic: str, msgtype: str) -> Any:
+        """The topic's connection (made on its first message); BagError for an unknown type or a second type."""
         writer = self._require_open()
         if topic not in self._conns:
             if msgtype not in self._store.types:
@@ -210,8 +214,11 @@ class BagWriter:
         conn, have = self._conns[topic]
         if have != msgtype:
             raise BagError(f"topic holds {have}, cannot also write {msgtype}", bag=str(self.path), topic=topic)
+        return conn
+
+    def _write(self, conn: Any, topic: str, stamp: float, data: bytes) -> None:
         try:
-            writer.write(conn, _stamp_ns(stamp), data)
+            self._require_open().write(conn, _stamp_ns(stamp), data)
         except WriterError as err:
             raise BagError(f"cannot write: {err}", bag=str(self.path), topic=topic) from err
 
@@ -537,6 +544,11 @@ def camera_intrinsics(msg: Any, width: int, height: int, source: str, topic: str
     intr = _intrinsics(msg)
     if intr is None:
         raise CalibrationError(f"no valid fx/fy in field 'k' ({[float(x) for x in msg.k]})", bag=source, topic=topic)
+    return _for_images(intr, width, height, source, topic)
+
+
+def _for_images(intr: CameraIntrinsics, width: int, height: int, source: str, topic: str) -> CameraIntrinsics:
+    """intr for colour images width x height: CalibrationError if the CameraInfo names another size."""
     if intr.width and intr.height and (intr.width, intr.height) != (width, height):
         raise CalibrationError(f"CameraInfo is {intr.width}x{intr.height} (fields 'width', 'height') but colour "
                                f"images are {width}x{height}", bag=source, topic=topic)
@@ -563,7 +575,7 @@ def decode_frame(color_msg: Any, depth_msg: Any | None, intr: CameraIntrinsics, 
                                  f"image is {color_msg.width}x{color_msg.height} (depth must be aligned to colour)",
                                  bag=source, topic=topics.depth)
         depth = _decode_depth(depth_msg, *depth_range_m)
-    return RGBDFrame(stamp=float(np.float64(_header_ns(color_msg.header)) / 1e9), color=_decode_color(color_msg),
+    return RGBDFrame(stamp=float(np.float64(header_ns(color_msg.header)) / 1e9), color=_decode_color(color_msg),
                      depth=depth, intrinsics=intr, side=side, index=index)
 
 
@@ -667,7 +679,7 @@ def read_rgbd(
                         bag=bag,
                         topic=conn.topic,
                     )
-                color_ns.append(_header_ns(msg.header))
+                color_ns.append(header_ns(msg.header))
             else:
                 msg = _deserialize(reader, raw, conn, bag)
                 _check_image(msg, DEPTH_ENCODINGS, "depth", len(depth_ns), bag, conn.topic)
@@ -680,7 +692,7 @@ def read_rgbd(
                     )
                 if not depth_ok:
                     depth_ok = bool(np.any(_decode_depth(msg, depth_min_m, depth_max_m)))
-                depth_ns.append(_header_ns(msg.header))
+                depth_ns.append(header_ns(msg.header))
 
     if not color_ns:
         raise EmptyBagError("no messages on the colour topic", bag=bag, topic=topics.color)
@@ -690,16 +702,7 @@ def read_rgbd(
         raise CalibrationError(
             f"no usable CameraInfo among {n_info} messages: {detail}", bag=bag, topic=topics.camera_info
         )
-    if intr.width and intr.height and (intr.width, intr.height) != color_size:
-        raise CalibrationError(
-            f"CameraInfo is {intr.width}x{intr.height} (fields 'width', 'height') but colour images are "
-            f"{color_size[0]}x{color_size[1]}",
-            bag=bag,
-            topic=topics.camera_info,
-        )
-    intr = CameraIntrinsics(
-        color_size[0], color_size[1], intr.fx, intr.fy, intr.cx, intr.cy, intr.distortion, intr.frame_id
-    )
+    intr = _for_images(intr, color_size[0], color_size[1], bag, topics.camera_info)
     if mode == "rgbd":
         if not depth_ns:
             raise EmptyBagError(

@@ -3,10 +3,10 @@ RViz, Foxglove and PCL read: 0x00RRGGBB stored in a float32 field)."""
 
 from __future__ import annotations
 
-import math
-
 import numpy as np
 from sensor_msgs.msg import PointCloud2, PointField
+
+from orchard_mapping.ros.messages import stamp_header
 
 __all__ = ["cloud_from_msg", "cloud_to_msg"]
 
@@ -21,10 +21,7 @@ def cloud_to_msg(points: np.ndarray, colors: np.ndarray, frame_id: str, stamp: f
     data["x"], data["y"], data["z"] = pts[:, 0], pts[:, 1], pts[:, 2]
     data["rgb"] = (col[:, 0] << 16) | (col[:, 1] << 8) | col[:, 2]
     msg = PointCloud2()
-    msg.header.frame_id = frame_id
-    sec = math.floor(stamp)
-    msg.header.stamp.sec = int(sec)
-    msg.header.stamp.nanosec = min(int(round((stamp - sec) * 1e9)), 999_999_999)
+    stamp_header(msg.header, stamp, frame_id)
     msg.height, msg.width = 1, len(pts)
     msg.fields = [PointField(name=n, offset=o, datatype=PointField.FLOAT32, count=1)
                   for n, o in (("x", 0), ("y", 4), ("z", 8), ("rgb", 12))]

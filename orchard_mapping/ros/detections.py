@@ -5,11 +5,11 @@ comes back as the full-image boolean mask `core.detection.Detection` holds."""
 
 from __future__ import annotations
 
-import math
-
 import numpy as np
 
 from orchard_mapping.core.detection import Detection
+from orchard_mapping.core.types import ImagePatch, mask_bounds
+from orchard_mapping.ros.messages import stamp_header
 
 __all__ = ["detections_from_msg", "detections_to_msg"]
 
@@ -18,21 +18,18 @@ def detections_to_msg(dets: list[Detection], stamp: float, frame_id: str, width:
     from orchard_mapping_msgs.msg import TrunkDetection, TrunkDetectionArray
 
     out = TrunkDetectionArray()
-    out.header.frame_id = frame_id
-    sec = math.floor(stamp)
-    out.header.stamp.sec = int(sec)
-    out.header.stamp.nanosec = min(int(round((stamp - sec) * 1e9)), 999_999_999)
+    stamp_header(out.header, stamp, frame_id)
     out.image_width, out.image_height = int(width), int(height)
     for d in dets:
         m = TrunkDetection()
         m.class_id, m.score = int(d.class_id), float(d.score)
         m.box = np.asarray(d.box, np.float32)
         mask = np.asarray(d.mask, bool)
-        rows, cols = np.nonzero(mask.any(axis=1))[0], np.nonzero(mask.any(axis=0))[0]
-        if len(rows):
-            y0, y1, x0, x1 = int(rows[0]), int(rows[-1]) + 1, int(cols[0]), int(cols[-1]) + 1
-            m.mask_x, m.mask_y, m.mask_width, m.mask_height = x0, y0, x1 - x0, y1 - y0
-            m.mask = mask[y0:y1, x0:x1].astype(np.uint8).tobytes()
+        crop = ImagePatch.crop(mask, mask_bounds(mask))
+        if crop.data.size:
+            m.mask_x, m.mask_y = crop.col0, crop.row0
+            m.mask_height, m.mask_width = crop.data.shape
+            m.mask = crop.data.astype(np.uint8).tobytes()
         out.detections.append(m)
     return out
 

@@ -15,8 +15,8 @@ import numpy as np
 
 from orchard_mapping.core.trunks import TrunkLandmark
 
-__all__ = ["GroundRecord", "TrunkRecord", "ground_records", "grounds_from_msg", "grounds_to_msg", "trunks_from_msg",
-           "trunks_to_msg"]
+__all__ = ["GroundRecord", "TrunkRecord", "ground_records", "grounds_from_msg", "grounds_to_msg", "stamp_header",
+           "trunks_from_msg", "trunks_to_msg"]
 
 
 @dataclass(frozen=True)
@@ -61,17 +61,18 @@ def _t3(v: np.ndarray) -> tuple[float, float, float]:
     return (float(a[0]), float(a[1]), float(a[2]))
 
 
-def _header(msg, frame_id: str, stamp: float) -> None:
-    msg.header.frame_id = frame_id
+def stamp_header(header, stamp: float, frame_id: str) -> None:
+    """Set a std_msgs/Header (rclpy's): message time `stamp` (s) and frame_id."""
+    header.frame_id = frame_id
     sec = math.floor(stamp)
-    msg.header.stamp.sec = int(sec)
-    msg.header.stamp.nanosec = min(int(round((stamp - sec) * 1e9)), 999_999_999)
+    header.stamp.sec = int(sec)
+    header.stamp.nanosec = min(int(round((stamp - sec) * 1e9)), 999_999_999)
 
 
 def _array_msg(array_cls, item_cls, field: str, records: list, frame_id: str, stamp: float, fill):
     """An array message (header + a list field) with one item per record, each filled by fill(item, record)."""
     out = array_cls()
-    _header(out, frame_id, stamp)
+    stamp_header(out.header, stamp, frame_id)
     for r in records:
         m = item_cls()
         m.header = out.header

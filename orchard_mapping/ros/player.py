@@ -134,7 +134,7 @@ class BagPlayer(Node):
             self._pause(t0_wall + (m.log_time_ns - t0_log) / 1e9 / self.rate - time.monotonic())
             if m.topic == self.topics.side:
                 self.published[m.topic] += 1
-                self._side_pub.publish(_decode_string(m.data))
+                self._side_pub.publish(m.data)  # the stored bytes, through the latched publisher
                 continue
             self._pubs[m.topic].publish(m.data)
             self.published[m.topic] += 1
@@ -143,13 +143,6 @@ class BagPlayer(Node):
         status.data = json.dumps({"bag": str(bag), "side": side, "published": dict(self.published)})
         self._status_pub.publish(status)
         self._say_side(SIDE_END)
-
-
-def _decode_string(cdr: bytes) -> String:
-    """A std_msgs/String from its CDR bytes (the side topic goes through the player's latched publisher)."""
-    from rclpy.serialization import deserialize_message
-
-    return deserialize_message(cdr, String)
 
 
 def main(argv: list[str] | None = None) -> int:

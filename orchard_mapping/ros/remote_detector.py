@@ -11,7 +11,6 @@ one is used as soon as it is back.
 
 from __future__ import annotations
 
-import math
 import threading
 import time
 
@@ -20,15 +19,13 @@ from orchard_mapping_msgs.msg import TrunkDetectionArray
 from rclpy.node import Node
 from sensor_msgs.msg import Image
 
+from orchard_mapping.io.bags import header_ns
 from orchard_mapping.ros.detections import detections_from_msg
+from orchard_mapping.ros.messages import stamp_header
 from orchard_mapping.ros.qos import REPLAY
 from orchard_mapping.ros.trunk_detector import detections_topic, request_topic
 
 __all__ = ["RemoteDetector"]
-
-
-def _ns(header) -> int:
-    return int(header.stamp.sec) * 1_000_000_000 + int(header.stamp.nanosec)
 
 
 class RemoteDetector:
@@ -43,19 +40,16 @@ class RemoteDetector:
 
     def _on_answer(self, msg: TrunkDetectionArray) -> None:
         with self._cv:
-            self._answers[_ns(msg.header)] = msg
+            self._answers[header_ns(msg.header)] = msg
             self._cv.notify_all()
 
     def _request(self, color: np.ndarray, stamp: float) -> tuple[Image, int]:
         img = Image()
-        sec = math.floor(stamp)
-        img.header.stamp.sec = int(sec)
-        img.header.stamp.nanosec = min(int(round((stamp - sec) * 1e9)), 999_999_999)
-        img.header.frame_id = self.frame_id
+        stamp_header(img.header, stamp, self.frame_id)
         img.height, img.width = int(color.shape[0]), int(color.shape[1])
         img.encoding, img.is_bigendian, img.step = "rgb8", 0, 3 * img.width
         img.data = np.ascontiguousarray(color, np.uint8).tobytes()
-        return img, _ns(img.header)
+        return img, header_ns(img.header)
 
     def __call__(self, color: np.ndarray, stamp: float):
         img, key = self._request(color, stamp)

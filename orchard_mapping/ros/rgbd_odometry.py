@@ -41,10 +41,10 @@ from std_msgs.msg import String
 from orchard_mapping.core.geometry import matrix_to_quat
 from orchard_mapping.core.sidemap import SideMap
 from orchard_mapping.errors import OrchardMappingError
-from orchard_mapping.io.bags import camera_intrinsics, decode_frame
+from orchard_mapping.io.bags import camera_intrinsics, decode_frame, header_ns
 from orchard_mapping.pipeline import SIDES, SideSession, SpooledKeyframeImages, Timings
 from orchard_mapping.ros.clouds import cloud_to_msg
-from orchard_mapping.ros.messages import TrunkRecord, ground_records, grounds_to_msg, trunks_to_msg
+from orchard_mapping.ros.messages import TrunkRecord, ground_records, grounds_to_msg, stamp_header, trunks_to_msg
 from orchard_mapping.ros.params import ConfigParameters
 from orchard_mapping.ros.player import SIDE_END, STATUS_TOPIC as PLAYER_STATUS
 from orchard_mapping.ros.qos import CAMERA, LATCHED
@@ -52,17 +52,6 @@ from orchard_mapping.ros.remote_detector import RemoteDetector
 from orchard_mapping.ros.spin import StopNode, run_node
 
 __all__ = ["RGBDOdometryNode", "main"]
-
-
-def _ns(header) -> int:
-    return int(header.stamp.sec) * 1_000_000_000 + int(header.stamp.nanosec)
-
-
-def _stamp(msg_header, seconds: float, frame_id: str) -> None:
-    sec = int(np.floor(seconds))
-    msg_header.stamp.sec = sec
-    msg_header.stamp.nanosec = min(int(round((seconds - sec) * 1e9)), 999_999_999)
-    msg_header.frame_id = frame_id
 
 
 def _pose(msg_pose, T: np.ndarray) -> None:
@@ -192,7 +181,7 @@ class RGBDOdometryNode(Node):
 
     def _on_colour(self, msg: Image) -> None:
         self.counts.colour += 1
-        ns = _ns(msg.header)
+        ns = header_ns(msg.header)
         self._count_missed(ns)
         self._colour.append((ns, msg))
         self._pair()
@@ -216,7 +205,7 @@ class RGBDOdometryNode(Node):
 
     def _on_depth(self, msg: Image) -> None:
         self.counts.depth += 1
-        self._depth.append((_ns(msg.header), msg))
+        self._depth.append((header_ns(msg.header), msg))
         self._pair()
 
     def _pair(self, flush: bool = False) -> None:
@@ -270,7 +259,8 @@ class RGBDOdometryNode(Node):
                 self._error(str(err))
                 continue
             except Exception as err:  # noqa: BLE001 - a bug must not stop the tracking thread silently
-                self._error(f"{side} side, frame at {_ns(colour.header) / 1e9:.3f} s: {type(err).__name__}: {err}")
+                at = header_ns(colour.header) / 1e9
+                self._error(f"{side} side, frame at {at:.3f} s: {type(err).__name__}: {err}")
                 self.get_logger().error(traceback.format_exc())
                 continue
             self.counts.processed[side] = self.counts.processed.get(side, 0) + 1
@@ -283,7 +273,7 @@ class RGBDOdometryNode(Node):
         intr = camera_intrinsics(info, colour.width, colour.height, "camera topics", cfg.input.topics.camera_info)
         spool = self.get_parameter("spool_dir").value or None
         self._path[side] = PathMsg()
-        _stamp(self._path[side].header, 0.0, getattr(cfg.frames, f"odom_{side}"))
+        stamp_header(self._path[side].header, 0.0, getattr(cfg.frames, f"odom_{side}"))
         self.get_logger().info(f"{side} side: tracking")
         detect = None
         if self.get_parameter("detector").value == "node":
@@ -297,13 +287,13 @@ class RGBDOdometryNode(Node):
         pubs = self._side_pubs(side)
         frame_id = getattr(self.params.config.frames, f"odom_{side}")
         odom = Odometry()
-        _stamp(odom.header, stamp, frame_id)
+        stamp_header(odom.header, stamp, frame_id)
         odom.child_frame_id = self.params.config.frames.camera
         _pose(odom.pose.pose, T)
         pubs["odometry"].publish(odom)
         if keyframe:
             ps = PoseStamped()
-            _stamp(ps.header, stamp, frame_id)
+            stamp_header(ps.header, stamp, frame_id)
             _pose(ps.pose, T)
             path = self._path[side]
             path.header.stamp = ps.header.stamp
@@ -355,10 +345,10 @@ class RGBDOdometryNode(Node):
         pubs = self._side_pubs(sm.side)
         path = PathMsg()
         stamp = float(sm.keyframe_stamps[-1])
-        _stamp(path.header, stamp, sm.frame_id)
+        stamp_header(path.header, stamp, sm.frame_id)
         for t, T in zip(sm.keyframe_stamps, sm.keyframe_poses):
             ps = PoseStamped()
-            _stamp(ps.header, float(t), sm.frame_id)
+            stamp_header(ps.header, float(t), sm.frame_id)
             _pose(ps.pose, T)
             path.poses.append(ps)
         pubs["keyframes"].publish(path)

@@ -18,7 +18,7 @@ from rclpy.lifecycle import LifecycleNode, State, TransitionCallbackReturn
 from sensor_msgs.msg import Image
 
 from orchard_mapping.errors import OrchardMappingError
-from orchard_mapping.io.bags import decode_color
+from orchard_mapping.io.bags import decode_color, header_ns
 from orchard_mapping.pipeline import SIDES, trunk_detector
 from orchard_mapping.ros.detections import detections_to_msg
 from orchard_mapping.ros.params import ConfigParameters
@@ -76,7 +76,7 @@ class TrunkDetectorNode(LifecycleNode):
         return TransitionCallbackReturn.SUCCESS
 
     def _answer(self, side: str, msg: Image) -> None:
-        stamp = msg.header.stamp.sec + 1e-9 * msg.header.stamp.nanosec
+        stamp = header_ns(msg.header) / 1e9
         try:
             dets = self._detect[side](decode_color(msg), stamp)
         except OrchardMappingError as err:
