@@ -145,6 +145,7 @@ class TsdfFusion:
         self._mesh_empty = False
         self._scene_near: tuple[bytes, o3d.t.geometry.RaycastingScene | None] | None = None  # (key, scene)
         self.frames_integrated = 0
+        self.frames_empty = 0  # frames with no depth within depth_max_m: nothing fused
         self.blocks_retired = 0
         self.seconds_integrating = 0.0
         u, v = np.meshgrid(np.arange(intr.width, dtype=np.float32), np.arange(intr.height, dtype=np.float32))
@@ -162,8 +163,20 @@ class TsdfFusion:
         d_img = o3d.t.geometry.Image(o3c.Tensor(depth))
         # Open3D accepts float depth only with float colour; colour is stored in [0, 1].
         c_img = o3d.t.geometry.Image(o3c.Tensor(color.astype(np.float32) * np.float32(1.0 / 255.0)))
-        blocks = self._vbg.compute_unique_block_coordinates(d_img, self._K, extrinsic, 1.0, self.depth_max_m,
-                                                            self._trunc_mult)
+        # A frame with nothing within reach (a gap between trees, open ground at a row's end) fuses nothing.
+        # Open3D aborts a frame that touches no block, also when its few pixels in reach fall between the
+        # ones it samples (seen on a simulated row), so its own verdict counts too.
+        blocks = None
+        if np.any((depth > 0) & (depth <= self.depth_max_m)):
+            try:
+                blocks = self._vbg.compute_unique_block_coordinates(d_img, self._K, extrinsic, 1.0,
+                                                                    self.depth_max_m, self._trunc_mult)
+            except RuntimeError as err:
+                if "No block is touched" not in str(err):
+                    raise
+        if blocks is None:
+            self.frames_empty += 1
+            return
         self._vbg.integrate(blocks, d_img, c_img, self._K, extrinsic, 1.0, self.depth_max_m, self._trunc_mult)
         self.seconds_integrating += time.perf_counter() - t0
         self.frames_integrated += 1

@@ -283,6 +283,19 @@ def test_tsdf_flat_wall_is_fused_and_ray_cast_without_bias():
     assert np.median(fused2[fused2 > 0]) == pytest.approx(1.3031, abs=1e-3)
 
 
+def test_a_frame_with_nothing_within_reach_adds_nothing():
+    """A frame whose depth all lies beyond depth_max (a gap between trees, open ground at a row's end) is
+    fused as nothing, not an error (Open3D aborts a frame that touches no block)."""
+    intr = CameraIntrinsics(64, 48, 61.5, 61.5, 31.5, 23.5)
+    fusion = TsdfFusion(intr, depth_max_m=1.5)
+    color = np.zeros((48, 64, 3), np.uint8)
+    fusion.integrate(np.full((48, 64), 2.5, np.float32), color, np.eye(4))  # beyond reach
+    fusion.integrate(np.zeros((48, 64), np.float32), color, np.eye(4))  # no depth at all
+    assert fusion.n_blocks == 0 and fusion.frames_empty == 2 and fusion.frames_integrated == 0
+    fusion.integrate(np.full((48, 64), 1.2, np.float32), color, np.eye(4))
+    assert fusion.n_blocks > 0 and fusion.frames_integrated == 1
+
+
 # --- (e): bad input -------------------------------------------------------------------------------------
 
 
