@@ -37,8 +37,10 @@ from rich.table import Table  # noqa: E402
 from orchard_mapping.config import load_config  # noqa: E402
 from orchard_mapping.core.geometry import transform_points  # noqa: E402
 from orchard_mapping.eval.ground_truth import load_ground_truth  # noqa: E402
-from orchard_mapping.eval.metrics import merge_error, rigid_rmse_mm  # noqa: E402
-from orchard_mapping.pipeline import Timings, merge_sides, open_sides, reconstruct_side, two_side_trees  # noqa: E402
+from orchard_mapping.core.geometry import matrix_to_quat  # noqa: E402
+from orchard_mapping.core.types import StampedTrajectory  # noqa: E402
+from orchard_mapping.eval.metrics import map_merge_error, merge_error, rigid_rmse_mm  # noqa: E402
+from orchard_mapping.pipeline import Timings, map_poses, merge_sides, open_sides, reconstruct_side, two_side_trees  # noqa: E402
 from orchard_mapping.sim.scenario import load_scenario  # noqa: E402
 from orchard_mapping.sim.simulate import simulate  # noqa: E402
 
@@ -146,6 +148,11 @@ def _score(method: str, sides: dict[str, Any], gt: Any) -> dict[str, Any]:
     T_back_world = np.linalg.inv(gt.sides["back"].T_world_odom)
     bases = transform_points(T_back_world, np.array([t.trunk_base for t in gt.trees]).reshape(-1, 3))
     me = merge_error(m.T_front_back, gt.T_front_back, bases)
+    in_map = {side: StampedTrajectory(sides[side].keyframe_stamps, P[:, :3, 3], matrix_to_quat(P[:, :3, :3]))
+              for side, P in map_poses(m, sides).items()}
+    mm = map_merge_error(in_map["front"], in_map["back"], gt.sides["front"].trajectory, gt.sides["back"].trajectory,
+                         gt.sides["front"].T_world_odom, gt.sides["back"].T_world_odom,
+                         np.array([t.trunk_base for t in gt.trees]).reshape(-1, 3))
     T_front_world = np.linalg.inv(gt.sides["front"].T_world_odom)
     true_xyz = transform_points(T_front_world, np.array([t.position for t in gt.trees]).reshape(-1, 3))
     est = np.array([t.position for t in trees], float).reshape(-1, 3)
@@ -161,6 +168,8 @@ def _score(method: str, sides: dict[str, Any], gt: Any) -> dict[str, Any]:
         "gap_median_mm": float(np.median(list(gaps.values()))) if gaps else None,
         "gap_max_mm": float(max(gaps.values())) if gaps else None,
         "rotation_error_deg": me.rotation_error_deg, "translation_error_mm": me.translation_error_mm,
+        "map_rotation_error_deg": mm.rotation_error_deg, "map_translation_error_mm": mm.translation_error_mm,
+        "map_translation_max_mm": mm.max_translation_error_mm,
         "trees": len(trees), "trees_matched": int(ok.sum()),
         "tree_distance_mean_mm": float(1000 * dist[ok].mean()) if ok.any() else None,
         "tree_position_rmse_mm": rmse,
@@ -202,7 +211,7 @@ def main(argv: list[str] | None = None) -> int:
                 rows.append({"scenario": label, "trees_in_row": args.trees * copies, **_score(method, s_k, gt_k)})
                 print(json.dumps(rows[-1]), file=sys.stderr)
     tab = Table(title=f"two-side merge, {args.trees} trees (x K: tiled), {args.rate:g} Hz, seed {args.seed} (same sides for every method)")
-    for col in ("scenario", "method", "s", "align / init / SBA s", "pairs", "axis gap mm med/max", "rot err deg", "transl err mm",
+    for col in ("scenario", "method", "s", "align / init / SBA s", "pairs", "axis gap mm med/max", "rot err deg", "transl err mm", "map rot deg", "map transl mm",
                 "trees matched", "tree dist mm", "tree RMSE mm", "diam MAE mm"):
         tab.add_column(col, justify="right")
     for r in rows:
@@ -210,7 +219,8 @@ def main(argv: list[str] | None = None) -> int:
         tab.add_row(r["scenario"], r["method"], _f(r["seconds"]),
                     " / ".join(_f(st.get(k)) for k in ("alignment", "initial_transform", "semantic_ba")), str(r["pairs"]),
                     f"{_f(r['gap_median_mm'], 1)}/{_f(r['gap_max_mm'], 1)}", _f(r["rotation_error_deg"], 3),
-                    _f(r["translation_error_mm"], 1), f"{r['trees_matched']}/{r['trees']}",
+                    _f(r["translation_error_mm"], 1), _f(r.get("map_rotation_error_deg"), 3),
+                    _f(r.get("map_translation_error_mm"), 1), f"{r['trees_matched']}/{r['trees']}",
                     _f(r["tree_distance_mean_mm"], 1), _f(r["tree_position_rmse_mm"], 1), _f(r["diameter_mae_mm"]))
     Console(width=200).print(tab)
     if args.json:

@@ -546,7 +546,7 @@ def merge_sides(front: SideMap, back: SideMap, cfg: OrchardConfig) -> MergeOutco
     return MergeOutcome(cfg.merge.method, it.T_front_back, al.pairs, al, it, sba, shapes, seconds)
 
 
-def _map_poses(m: MergeOutcome, sides: dict[str, SideMap]) -> dict[str, np.ndarray]:
+def map_poses(m: MergeOutcome, sides: dict[str, SideMap]) -> dict[str, np.ndarray]:
     """side -> (K, 4, 4) T_map_cam of its keyframes after the merge (the semantic BA's when it ran)."""
     if m.sba is not None:
         return {"front": m.sba.front_poses, "back": m.sba.back_poses}
@@ -556,7 +556,7 @@ def _map_poses(m: MergeOutcome, sides: dict[str, SideMap]) -> dict[str, np.ndarr
 def clouds_in_map(m: MergeOutcome, sides: dict[str, SideMap]) -> dict[str, np.ndarray]:
     """side -> (P, 3) its fused cloud in map, carried along with its keyframes by the merge."""
     return {side: move_with_keyframes(sides[side].cloud_points, sides[side].keyframe_poses, P)
-            for side, P in _map_poses(m, sides).items()}
+            for side, P in map_poses(m, sides).items()}
 
 
 # m: the union of both sides' points near a tree is cropped to this cube (half side) before the local
@@ -680,7 +680,7 @@ def write_merge(out: Path, m: MergeOutcome, sides: dict[str, SideMap],
         overlap["x_range_m"] = list(al.overlap_m)
     write_side_merge(out / SIDE_MERGE_JSON, m.T_front_back, method=m.method, residuals=residuals,
                      overlap=overlap, alignment_log=al.log if al is not None else [], seconds=m.seconds, **extra)
-    poses = _map_poses(m, sides)
+    poses = map_poses(m, sides)
     for side, P in poses.items():  # (K, 4, 4) T_map_cam
         write_tum(out / map_trajectory_filename(side), StampedTrajectory(
             sides[side].keyframe_stamps, P[:, :3, 3], np.array([matrix_to_quat(R) for R in P[:, :3, :3]])))

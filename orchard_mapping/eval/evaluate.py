@@ -20,6 +20,7 @@ from orchard_mapping.eval.metrics import (
     MergeError,
     TrajectoryError,
     double_count,
+    map_merge_error,
     match_trees,
     merge_error,
     rigid_rmse_mm,
@@ -263,6 +264,7 @@ def evaluate_result(
             fruit = None
 
     merge: MergeError | None = None
+    merge_map: MergeError | None = None
     gaps: dict[str, float] | None = None
     if (result_dir / SIDE_MERGE_JSON).is_file():
         sm = read_side_merge(result_dir / SIDE_MERGE_JSON)
@@ -272,6 +274,17 @@ def evaluate_result(
             merge = merge_error(sm.T_front_back, gt.T_front_back, bases)
         except AlignmentError as err:
             skipped["merge"] = str(err)
+        maps = [result_dir / map_trajectory_filename(side) for side in ("front", "back")]
+        if all(p.is_file() for p in maps) and not (_rgb_only(result_dir) if scale_alignment is None else scale_alignment):
+            world_bases = np.array([t.trunk_base for t in gt.trees]).reshape(-1, 3)
+            try:
+                merge_map = map_merge_error(read_tum(maps[0]), read_tum(maps[1]), gt.sides["front"].trajectory,
+                                            gt.sides["back"].trajectory, gt.sides["front"].T_world_odom,
+                                            gt.sides["back"].T_world_odom, world_bases, trajectory_max_dt_s)
+            except AlignmentError as err:
+                skipped["merge.map"] = str(err)
+        else:
+            skipped["merge.map"] = "no metric trajectory_<side>_map.tum pair"
         if (result_dir / TRUNKS_JSON).is_file():
             gaps = _trunk_axis_gaps_mm(result_dir, sm, read_trunks(result_dir / TRUNKS_JSON),
                                        gt.diameter_height_m or DEFAULT_DIAMETER_HEIGHT_M)
@@ -320,6 +333,7 @@ def evaluate_result(
         fruit_count=fruit,
         double_count=dc,
         merge=merge,
+        merge_map=merge_map,
         sides=sides,
         timings=timings,
         pairs=pairs,

@@ -30,6 +30,7 @@ __all__ = [
     "TreeMatching",
     "associate_stamps",
     "double_count",
+    "map_merge_error",
     "match_trees",
     "merge_error",
     "rigid_rmse_mm",
@@ -141,6 +142,53 @@ def merge_error(T_est: np.ndarray, T_true: np.ndarray, points_back: np.ndarray) 
         scale=float(est.s),
         scale_error_percent=None if rigid else 100.0 * (est.s - 1.0),
     )
+
+
+# m: each keyframe joins the fit as its centre and the points this far along its camera axes. A side's
+# keyframe centres lie nearly on one line (the row), which leaves the roll about it free.
+_AXIS_POINT_M = 1.0
+
+
+def _pose_points(T: np.ndarray) -> np.ndarray:
+    """(4K, 3): each pose's centre and the points _AXIS_POINT_M along its x, y and z axes; T (K, 4, 4)."""
+    c = T[:, :3, 3]
+    return np.concatenate([c] + [c + _AXIS_POINT_M * T[:, :3, a] for a in range(3)])
+
+
+def _fit_map_to_world(est: StampedTrajectory, true: StampedTrajectory, T_world_odom: np.ndarray,
+                      max_dt_s: float) -> np.ndarray:
+    """(4, 4) the rigid map -> world transform that best fits a side's keyframes in map to its true poses."""
+    order_t = np.argsort(true.stamps, kind="stable")
+    order_e = np.argsort(est.stamps, kind="stable")
+    i_s, j_s = associate_stamps(np.asarray(est.stamps)[order_e], np.asarray(true.stamps)[order_t], max_dt_s)
+    i, j = order_e[i_s], order_t[j_s]
+    if i.size < 2:
+        raise AlignmentError(f"{true.frame_id or 'a side'}: {i.size} keyframes paired with the true trajectory "
+                             "by stamp; the merged map's error needs 2")
+    T_est = pose_matrices(np.asarray(est.positions)[i], np.asarray(est.quaternions)[i])  # (n, 4, 4) map
+    T_true = T_world_odom @ pose_matrices(np.asarray(true.positions)[j], np.asarray(true.quaternions)[j])  # world
+    return umeyama(_pose_points(T_est), _pose_points(T_true)).matrix()
+
+
+def map_merge_error(front_map: StampedTrajectory, back_map: StampedTrajectory, front_true: StampedTrajectory,
+                    back_true: StampedTrajectory, T_world_front: np.ndarray, T_world_back: np.ndarray,
+                    points_world: np.ndarray, max_dt_s: float = 0.005) -> MergeError:
+    """Where the merged map puts the back side against where it puts the front side, each side's own
+    drift left out (docs/results.md): each side's keyframes in map are fitted to its true poses in world
+    by one rigid transform, A_front and A_back. A perfect merge of two drifted sides has A_front = A_back
+    (both sides bent alike); the back side is misplaced by D = A_front A_back^-1. Rotation: the angle of D;
+    translation: |D p - p| over points_world (P, 3) m (the true trunk bases). The true poses of each side
+    are in its odom frame, T_world_<side> (4, 4) places them in world."""
+    A_f = _fit_map_to_world(front_map, front_true, T_world_front, max_dt_s)
+    A_b = _fit_map_to_world(back_map, back_true, T_world_back, max_dt_s)
+    D = A_f @ np.linalg.inv(A_b)
+    pts = np.asarray(points_world, dtype=float).reshape(-1, 3)
+    if pts.shape[0] == 0:
+        raise AlignmentError("merge error needs at least one trunk base point")
+    err = np.linalg.norm(transform_points(D, pts) - pts, axis=1)  # (P,)
+    return MergeError(rotation_error_deg=rotation_angle_deg(D[:3, :3]), translation_error_mm=1000.0 * float(err.mean()),
+                      max_translation_error_mm=1000.0 * float(err.max()), n_points=int(pts.shape[0]), scale=1.0,
+                      scale_error_percent=None)
 
 
 def rigid_rmse_mm(est: np.ndarray, true: np.ndarray) -> float | None:

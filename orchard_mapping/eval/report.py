@@ -132,7 +132,7 @@ class EvaluationReport:
     traits: TraitErrors | None
     fruit_count: FruitCountError | None
     double_count: DoubleCount | None
-    merge: MergeError | None
+    merge: MergeError | None  # the merge's rigid odom_back -> odom_front against the true one
     sides: Mapping[str, TrajectoryError | None]
     timings: TimingSummary | None
     pairs: tuple[TreePair, ...] = ()
@@ -142,6 +142,9 @@ class EvaluationReport:
     # After the merge: distance between the two sides' axes of each paired trunk at the diameter height, in
     # map (mm): {"median", "max", "n"}; None when there is no merge to measure.
     trunk_axis_gap_mm: Mapping[str, float] | None = None
+    # The merged map's placement of the back side against the front side, each side's drift left out
+    # (eval.metrics.map_merge_error); None without both sides' trajectories in map.
+    merge_map: MergeError | None = None
 
     def to_dict(self) -> dict[str, Any]:
         """JSON-serialisable; every key is always present (null where not evaluated)."""
@@ -155,7 +158,8 @@ class EvaluationReport:
             "fruit_count": _plain(self.fruit_count),
             "double_count": _plain(self.double_count),
             "merge": None if self.merge is None else {**_plain(self.merge),
-                                                      "trunk_axis_gap_mm": self.trunk_axis_gap_mm},
+                                                      "trunk_axis_gap_mm": self.trunk_axis_gap_mm,
+                                                      "map": _plain(self.merge_map)},
             "trees": {"position_rmse_mm": None if self.matching is None else self.matching.position_rmse_mm},
             "sides": {name: _plain(err) for name, err in self.sides.items()},
             "trunks": {name: _plain(e) for name, e in self.trunks.items()},
@@ -230,7 +234,7 @@ class EvaluationReport:
             na("merge rotation error", "merge")
         else:
             rows += [
-                ("merge rotation error", _fmt(g.rotation_error_deg, 3), "deg", "scale removed"),
+                ("merge rotation error", _fmt(g.rotation_error_deg, 3), "deg", "odom_back -> odom_front vs truth, scale removed"),
                 (
                     "merge translation error",
                     _fmt(g.translation_error_mm, 1),
@@ -238,6 +242,12 @@ class EvaluationReport:
                     f"mean over {g.n_points} trunk bases; max {_fmt(g.max_translation_error_mm, 1)} mm",
                 ),
             ]
+            m = self.merge_map
+            if m is not None:
+                rows += [("merged map rotation error", _fmt(m.rotation_error_deg, 3), "deg",
+                          "back side vs front side in map, each fitted to its truth"),
+                         ("merged map translation error", _fmt(m.translation_error_mm, 1), "mm",
+                          f"mean over {m.n_points} trunk bases; max {_fmt(m.max_translation_error_mm, 1)} mm")]
             gap = self.trunk_axis_gap_mm
             if gap is not None:
                 rows.append(("trunk axis gap after the merge", _fmt(gap["median"], 1), "mm",

@@ -158,8 +158,14 @@ def write_exact_result(truth: dict[str, Any], result_dir: Path) -> Path:
     result_dir.mkdir(parents=True, exist_ok=True)
     write_trees(result_dir, exact_trees(truth))
     write_side_merge(result_dir / "side_merge.json", np.asarray(truth["T_front_back"]), residuals={"trunks_m": 0.0})
+    T_map_odom = {"front": np.eye(4), "back": np.asarray(truth["T_front_back"])}
     for side in ("front", "back"):
-        write_tum(result_dir / f"trajectory_{side}.tum", true_trajectory(truth, side, KEYFRAME_STEP))
+        kf = true_trajectory(truth, side, KEYFRAME_STEP)
+        write_tum(result_dir / f"trajectory_{side}.tum", kf)
+        T = T_map_odom[side]
+        R = T[:3, :3] @ Rotation.from_quat(kf.quaternions).as_matrix()  # (K, 3, 3)
+        write_tum(result_dir / f"trajectory_{side}_map.tum",
+                  StampedTrajectory(kf.stamps, kf.positions @ T[:3, :3].T + T[:3, 3], Rotation.from_matrix(R).as_quat()))
     write_timings(
         result_dir / "timings.json", {"odometry": 2.0, "merge": 0.5, "traits": 1.5}, frames=62, recording_duration_s=4.0
     )

@@ -52,6 +52,8 @@ def test_exact_result_scores_zero(truth_path: Path, result_dir: Path) -> None:
     assert rep.merge.rotation_error_deg == pytest.approx(0.0, abs=1e-6)
     assert rep.merge.translation_error_mm == pytest.approx(0.0, abs=1e-6)
     assert rep.merge.scale_error_percent is None
+    assert rep.merge_map is not None and rep.merge_map.rotation_error_deg == pytest.approx(0.0, abs=1e-6)
+    assert rep.merge_map.translation_error_mm == pytest.approx(0.0, abs=1e-6)
     for side in ("front", "back"):
         e = rep.sides[side]
         assert e is not None and e.n_associated == 11 and e.alignment == "se3"
@@ -350,3 +352,53 @@ def test_truth_without_trees_does_not_crash(tmp_path: Path, truth: dict[str, Any
     assert rep.double_count is not None and rep.double_count.false == 9
     assert rep.merge is None and "merge" in rep.skipped
     assert json.dumps(rep.to_dict()) and _render(rep.table())
+
+
+def _write_map_trajectories(result_dir: Path, truth: dict[str, Any], kit: types.SimpleNamespace,
+                            move_back: np.ndarray, move_both: np.ndarray) -> None:
+    """Both sides' true keyframes in map (= odom_front), the back side moved by move_back (4, 4) in map,
+    then both by move_both (4, 4)."""
+    T_fb = np.asarray(truth["T_front_back"])
+    for side, T in (("front", move_both), ("back", move_both @ move_back @ T_fb)):
+        kf = kit.true_trajectory(truth, side, kit.keyframe_step)
+        P = np.repeat(np.eye(4)[None], kf.stamps.size, axis=0)
+        P[:, :3, :3] = Rotation.from_quat(kf.quaternions).as_matrix()
+        P[:, :3, 3] = kf.positions
+        P = T @ P
+        write_tum(result_dir / f"trajectory_{side}_map.tum",
+                  StampedTrajectory(kf.stamps, P[:, :3, 3], Rotation.from_matrix(P[:, :3, :3]).as_quat()))
+
+
+def test_merged_map_error_leaves_out_what_both_sides_share(
+    truth_path: Path, result_dir: Path, truth: dict[str, Any], kit: types.SimpleNamespace
+) -> None:
+    """The merged map's error measures the back side against the front side: a rigid move of the whole map
+    is no error, the back side moved alone is, by the planted amount (rotation and translation)."""
+    G = np.eye(4)
+    G[:3, :3] = Rotation.from_euler("xyz", [3.0, -5.0, 40.0], degrees=True).as_matrix()
+    G[:3, 3] = [0.4, -1.0, 0.2]
+    _write_map_trajectories(result_dir, truth, kit, np.eye(4), G)
+    m = evaluate_result(truth_path, result_dir).merge_map
+    assert m is not None and m.rotation_error_deg == pytest.approx(0.0, abs=1e-6)
+    assert m.translation_error_mm == pytest.approx(0.0, abs=1e-6) and m.n_points == 3
+
+    shift = np.eye(4)
+    shift[:3, 3] = [0.010, 0.0, 0.0]
+    _write_map_trajectories(result_dir, truth, kit, shift, G)
+    rep = evaluate_result(truth_path, result_dir)
+    m = rep.merge_map
+    assert m is not None and m.translation_error_mm == pytest.approx(10.0, abs=1e-6)
+    assert m.rotation_error_deg == pytest.approx(0.0, abs=1e-6)
+    assert rep.to_dict()["merge"]["map"]["translation_error_mm"] == pytest.approx(10.0, abs=1e-6)
+
+    turn = np.eye(4)
+    turn[:3, :3] = Rotation.from_rotvec(np.radians(0.5) * np.array([1.0, 0.0, 0.0])).as_matrix()  # about the row
+    _write_map_trajectories(result_dir, truth, kit, turn, np.eye(4))
+    m = evaluate_result(truth_path, result_dir).merge_map
+    assert m is not None and m.rotation_error_deg == pytest.approx(0.5, abs=1e-6) and m.translation_error_mm > 1.0
+
+
+def test_merged_map_error_needs_both_map_trajectories(truth_path: Path, result_dir: Path) -> None:
+    (result_dir / "trajectory_back_map.tum").unlink()
+    rep = evaluate_result(truth_path, result_dir)
+    assert rep.merge is not None and rep.merge_map is None and "merge.map" in rep.skipped
