@@ -36,6 +36,8 @@ setup(
             "trunk_detector = orchard_mapping.ros.trunk_detector:main",
             "bag_player = orchard_mapping.ros.player:main",
             "recorder = orchard_mapping.ros.recorder:main",
+            "side_merger = orchard_mapping.ros.side_merger:main",
+            "trait_reporter = orchard_mapping.ros.trait_reporter:main",
         ],
     },
 )

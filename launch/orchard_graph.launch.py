@@ -1,7 +1,8 @@
-"""`ros2 launch orchard_mapping orchard_graph.launch.py [bags:=front,back] [rate:=1.0] [params:=FILE]` on a full
-ROS 2 Jazzy install (colcon build; see the README). The same graph as `orchard-map launch`: the trunk
-detector, the odometry node (asking the detector node) and, with `bags`, the bag player. Not runnable from
-the project's venv (no `launch` on PyPI): there, use `orchard-map launch`."""
+"""`ros2 launch orchard_mapping orchard_graph.launch.py [bags:=front,back] [rate:=1.0] [params:=FILE] [out:=DIR]`
+on a full ROS 2 Jazzy install (colcon build; see the README). The same graph as `orchard-map launch`: the
+trunk detector, the odometry node (asking the detector node), the side merger, the trait reporter and, with
+`bags`, the bag player. Not runnable from the project's venv (no `launch` on PyPI): there, use
+`orchard-map launch`."""
 
 from pathlib import Path
 
@@ -18,7 +19,13 @@ def _nodes(context):
     bags = [b for b in LaunchConfiguration("bags").perform(context).split(",") if b]
     rate = LaunchConfiguration("rate").perform(context)
     odometry = [params, {"detector": "node", "exit_after_sides": len(bags)}]
+    out = LaunchConfiguration("out").perform(context)
+    merged = [params, {"out_dir": out}]
     nodes = [
+        Node(package="orchard_mapping", executable="side_merger", name="side_merger", parameters=merged,
+             respawn=not bags, output="screen"),
+        Node(package="orchard_mapping", executable="trait_reporter", name="trait_reporter", parameters=merged,
+             respawn=not bags, output="screen"),
         LifecycleNode(package="orchard_mapping", executable="trunk_detector", name="trunk_detector", namespace="",
                       parameters=[params], respawn=True, output="screen"),
         Node(package="orchard_mapping", executable="rgbd_odometry", name="rgbd_odometry", parameters=odometry,
@@ -36,5 +43,6 @@ def generate_launch_description():
         DeclareLaunchArgument("bags", default_value="", description="comma-separated bags to replay (front,back)"),
         DeclareLaunchArgument("rate", default_value="1.0", description="replay speed"),
         DeclareLaunchArgument("params", default_value="", description="parameters file (default: ros_params.yaml)"),
+        DeclareLaunchArgument("out", default_value="", description="folder for the merge's and the trees' files"),
         OpaqueFunction(function=_nodes),
     ])

@@ -35,7 +35,7 @@ from orchard_mapping.core.sidemap import FrontEndResult, LoopClosure, SideMap
 from orchard_mapping.core.cylinder import Cylinder
 from orchard_mapping.core.trunks import TrunkLandmark, TrunkView, build_trunk_landmarks, ground_around_trunk
 from orchard_mapping.core.detection import CLASS_TRUNK
-from orchard_mapping.core.types import ImagePatch, RGBDFrame, StampedTrajectory
+from orchard_mapping.core.types import CameraIntrinsics, ImagePatch, RGBDFrame, StampedTrajectory
 from orchard_mapping.errors import AlignmentError, BagError, BagFormatError, MergeRefusedError
 from orchard_mapping.io.bags import RGBDSequence, read_rgbd
 from orchard_mapping.io.figures import RowView, write_row_png
@@ -211,75 +211,99 @@ class SideSession:
         self.seconds += time.perf_counter() - t0
         return pose, new
 
+    def handover(self) -> "SideHandover":
+        """What finishing the side needs, without the front end's live state (it pickles: the live odometry
+        node finishes a side in another process)."""
+        return SideHandover(self.side, self.intrinsics, self.cfg, self.images, self.bag, self.fe.result(),
+                            list(self.fe.events), self.frames, self.seconds)
+
     def finish(self, timings: Timings) -> SideMap:
         """Everything after the front end; the side map. Lets go of the kept keyframe images."""
         try:
-            return self._finish(timings)
+            return finish_side(self.handover(), timings, self.detect)
         finally:
             self.images.close()
 
-    def _finish(self, timings: Timings) -> SideMap:
-        cfg, side, intr = self.cfg, self.side, self.intrinsics
-        timings.add(f"front_end_{side}", self.seconds)
-        for event in self.fe.events:
-            log.warning("%s: %s", side, event)
-        fe = self.fe.result()
-        if len(fe.keyframes) < 2:
-            raise BagFormatError(f"the {side} side could not be reconstructed: {len(fe.keyframes)} keyframe(s) "
-                                 f"from {self.frames} frames (too little texture or valid depth)", bag=self.bag)
-        poses = np.array([k.T_odom_cam for k in fe.keyframes])
-        odometry = poses.copy()
-        loops: list[LoopClosure] = []
-        if cfg.loop.enabled and cfg.input.mode == "rgbd":
-            t0 = time.perf_counter()
-            loops = cfg.loop.detector(intr).detect_all(fe.keyframes)
-            timings.add(f"loop_detection_{side}", time.perf_counter() - t0)
-            log.info("%s: %d verified loop closures", side, len(loops))
+
+@dataclass(frozen=True)
+class SideHandover:
+    """A side's front end done: what `finish_side` makes the side map from."""
+
+    side: str
+    intrinsics: CameraIntrinsics
+    cfg: OrchardConfig
+    images: KeyframeImages
+    bag: str
+    front_end: FrontEndResult
+    events: list[str]
+    frames: int  # frames tracked
+    seconds: float  # s spent in the front end
+
+
+def finish_side(job: SideHandover, timings: Timings, detect: Detect | None = None) -> SideMap:
+    """Loop detection, pose graph, bundle adjustment, TSDF fusion with trunk detection, trunk cylinders and
+    local grounds: the side map. detect: None for the configured detector in this process."""
+    cfg, side, intr = job.cfg, job.side, job.intrinsics
+    timings.add(f"front_end_{side}", job.seconds)
+    for event in job.events:
+        log.warning("%s: %s", side, event)
+    fe = job.front_end
+    if len(fe.keyframes) < 2:
+        raise BagFormatError(f"the {side} side could not be reconstructed: {len(fe.keyframes)} keyframe(s) "
+                             f"from {job.frames} frames (too little texture or valid depth)", bag=job.bag)
+    poses = np.array([k.T_odom_cam for k in fe.keyframes])
+    odometry = poses.copy()
+    loops: list[LoopClosure] = []
+    if cfg.loop.enabled and cfg.input.mode == "rgbd":
         t0 = time.perf_counter()
-        poses = optimise_pose_graph(poses, loops, loop_sigma_rot_deg=cfg.ba.loop_sigma_rot_deg,
-                                    loop_sigma_trans_m=cfg.ba.loop_sigma_trans_m)
-        timings.add(f"pose_graph_{side}", time.perf_counter() - t0)
+        loops = cfg.loop.detector(intr).detect_all(fe.keyframes)
+        timings.add(f"loop_detection_{side}", time.perf_counter() - t0)
+        log.info("%s: %d verified loop closures", side, len(loops))
+    t0 = time.perf_counter()
+    poses = optimise_pose_graph(poses, loops, loop_sigma_rot_deg=cfg.ba.loop_sigma_rot_deg,
+                                loop_sigma_trans_m=cfg.ba.loop_sigma_trans_m)
+    timings.add(f"pose_graph_{side}", time.perf_counter() - t0)
+    t0 = time.perf_counter()
+    ba: BAResult = bundle_adjust_windowed(poses, fe.landmarks, fe.observations, intr, mode=cfg.input.mode,
+                                          loops=loops, **asdict(cfg.ba))
+    timings.add(f"bundle_adjustment_{side}", time.perf_counter() - t0)
+    release_freed_memory()
+    log.info("%s: %d keyframes, %d landmarks used, BA error %.1f -> %.1f in %d iterations", side,
+             len(fe.keyframes), ba.n_landmarks_used, ba.initial_error, ba.final_error, ba.iterations)
+    points = np.zeros((0, 3), np.float32)
+    colors = np.zeros((0, 3), np.uint8)
+    trunks: list[TrunkLandmark] = []
+    stamps = np.array([k.stamp for k in fe.keyframes])
+    if cfg.input.mode == "rgbd":
         t0 = time.perf_counter()
-        ba: BAResult = bundle_adjust_windowed(poses, fe.landmarks, fe.observations, intr, mode=cfg.input.mode,
-                                              loops=loops, **asdict(cfg.ba))
-        timings.add(f"bundle_adjustment_{side}", time.perf_counter() - t0)
-        release_freed_memory()
-        log.info("%s: %d keyframes, %d landmarks used, BA error %.1f -> %.1f in %d iterations", side,
-                 len(fe.keyframes), ba.n_landmarks_used, ba.initial_error, ba.final_error, ba.iterations)
-        points = np.zeros((0, 3), np.float32)
-        colors = np.zeros((0, 3), np.uint8)
-        trunks: list[TrunkLandmark] = []
-        stamps = np.array([k.stamp for k in fe.keyframes])
-        if cfg.input.mode == "rgbd":
+        views = TrunkViews(cfg, side, stamps, ba.poses, detect=detect)
+        fused = fuse_keyframes(job.images, [k.frame_index for k in fe.keyframes], ba.poses, intr, cfg, views)
+        points, colors = fused.points, fused.colors
+        timings.add(f"fusion_{side}", time.perf_counter() - t0 - views.seconds)
+        timings.add(f"trunk_detection_{side}", views.seconds)
+        if cfg.trunks.source != "off":
             t0 = time.perf_counter()
-            views = TrunkViews(cfg, side, stamps, ba.poses, detect=self.detect)
-            fused = fuse_keyframes(self.images, [k.frame_index for k in fe.keyframes], ba.poses, intr, cfg, views)
-            points, colors = fused.points, fused.colors
-            timings.add(f"fusion_{side}", time.perf_counter() - t0 - views.seconds)
-            timings.add(f"trunk_detection_{side}", views.seconds)
-            if cfg.trunks.source != "off":
-                t0 = time.perf_counter()
-                trunks = build_trunk_landmarks(points, ba.poses, views.views, intr, cfg.trunks, cfg.ground,
-                                               np.random.default_rng(cfg.seed))
-                timings.add(f"trunks_{side}", time.perf_counter() - t0)
-                if not trunks:
-                    log.warning("%s: no trunk found (trunks.json lists none for this side)", side)
-                if views.unavailable:
-                    flag_trunks_near(trunks, ba.poses[views.unavailable, :3, 3], cfg.fusion.depth_max_m)
-                    log.warning("%s: the trunk detector did not answer for %d keyframes (%.1f-%.1f s): trees "
-                                "there may be missing; %d trunks near them are flagged", side,
-                                len(views.unavailable), stamps[views.unavailable[0]], stamps[views.unavailable[-1]],
-                                sum(DETECTOR_UNAVAILABLE in t.flags for t in trunks))
-        release_freed_memory()
-        return SideMap(
-            side=side, frame_id=getattr(cfg.frames, f"odom_{side}"), intrinsics=intr,
-            keyframe_stamps=stamps, keyframe_poses=ba.poses,
-            landmarks=ba.landmarks, observations=fe.observations, loops=loops,
-            cloud_points=points, cloud_colors=colors,
-            scale_free=cfg.input.mode == "rgb",
-            odometry_poses=odometry,
-            trunks=trunks,
-        )
+            trunks = build_trunk_landmarks(points, ba.poses, views.views, intr, cfg.trunks, cfg.ground,
+                                           np.random.default_rng(cfg.seed))
+            timings.add(f"trunks_{side}", time.perf_counter() - t0)
+            if not trunks:
+                log.warning("%s: no trunk found (trunks.json lists none for this side)", side)
+            if views.unavailable:
+                flag_trunks_near(trunks, ba.poses[views.unavailable, :3, 3], cfg.fusion.depth_max_m)
+                log.warning("%s: the trunk detector did not answer for %d keyframes (%.1f-%.1f s): trees "
+                            "there may be missing; %d trunks near them are flagged", side,
+                            len(views.unavailable), stamps[views.unavailable[0]], stamps[views.unavailable[-1]],
+                            sum(DETECTOR_UNAVAILABLE in t.flags for t in trunks))
+    release_freed_memory()
+    return SideMap(
+        side=side, frame_id=getattr(cfg.frames, f"odom_{side}"), intrinsics=intr,
+        keyframe_stamps=stamps, keyframe_poses=ba.poses,
+        landmarks=ba.landmarks, observations=fe.observations, loops=loops,
+        cloud_points=points, cloud_colors=colors,
+        scale_free=cfg.input.mode == "rgb",
+        odometry_poses=odometry,
+        trunks=trunks,
+    )
 
 
 def reconstruct_side(seq: RGBDSequence, side: str, cfg: OrchardConfig, timings: Timings, labelled: bool = False,
@@ -654,6 +678,18 @@ def two_side_trees(m: MergeOutcome, sides: dict[str, SideMap], cfg: OrchardConfi
     return trees
 
 
+def merge_to_trees(sides: dict[str, SideMap], cfg: OrchardConfig
+                   ) -> tuple[MergeOutcome, dict[str, np.ndarray], list[ResultTree]]:
+    """The two sides merged (merge_sides), their clouds carried into map, and the trees: what `run` and the
+    side merger node write. AlignmentError (MergeRefusedError's base) when the merge is refused."""
+    merged = merge_sides(sides["front"], sides["back"], cfg)
+    clouds = clouds_in_map(merged, sides)
+    trees = two_side_trees(merged, sides, cfg, clouds)
+    log.info("sides merged (%s) on %d trunk pairs%s", merged.method, len(merged.pairs),
+             ": " + "; ".join(merged.alignment.log) if merged.alignment is not None else "")
+    return merged, clouds, trees
+
+
 def write_merge(out: Path, m: MergeOutcome, sides: dict[str, SideMap],
                 clouds: dict[str, np.ndarray] | None = None) -> None:
     """side_merge.json, both sides' trajectories in map (= odom_front), merged.ply and row.png."""
@@ -763,16 +799,13 @@ def _run(front: Path, back: Path | None, out: Path, cfg: OrchardConfig, progress
         if cfg.merge.method != "off" and set(sides) == {"front", "back"}:
             t0 = time.perf_counter()
             try:
-                merged = merge_sides(sides["front"], sides["back"], cfg)
+                merged, clouds, trees = merge_to_trees(sides, cfg)
             except AlignmentError as err:
                 log.warning("side merge refused: %s (no side_merge.json written)", err)
                 refused = str(err)
             else:
-                clouds = clouds_in_map(merged, sides)
                 write_merge(out, merged, sides, clouds)
-                write_trees(out, two_side_trees(merged, sides, cfg, clouds), frame="map")
-                log.info("sides merged (%s) on %d trunk pairs%s", merged.method, len(merged.pairs),
-                         ": " + "; ".join(merged.alignment.log) if merged.alignment is not None else "")
+                write_trees(out, trees, frame="map")
             timings.add("merge", time.perf_counter() - t0)
     write_timings(out / "timings.json", timings.stages, frames=timings.frames,
                   recording_duration_s=timings.recording_duration_s)

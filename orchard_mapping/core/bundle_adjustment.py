@@ -30,6 +30,7 @@ defined up to a similarity, so the gauge has 7 degrees of freedom (see
 from __future__ import annotations
 
 import logging
+import math
 import time
 from dataclasses import dataclass, replace
 from typing import Literal, Sequence
@@ -44,6 +45,7 @@ from orchard_mapping.errors import OrchardMappingError
 
 __all__ = [
     "BAResult",
+    "optimise_in_steps",
     "bundle_adjust_windowed",
     "ReconstructionError",
     "bundle_adjust",
@@ -219,6 +221,25 @@ def _add_loops(
         graph.add(gtsam.BetweenFactorPose3(X(int(lc.kf_a)), X(int(lc.kf_b)), gtsam.Pose3(np.asarray(lc.T_a_b)), noise))
 
 
+def optimise_in_steps(optimizer: gtsam.NonlinearOptimizer, params: gtsam.NonlinearOptimizerParams) -> gtsam.Values:
+    """optimizer.optimize(), one iteration per call into GTSAM, with GTSAM's own stopping rule (the same
+    result, tests). GTSAM holds the GIL for the whole of a call: an optimize() of 3000 poses (11 s) let no
+    other thread of the process run, so the odometry node, bundle-adjusting a finished side while it tracks
+    the next, stopped taking camera frames and DDS dropped 22 of them (a 2-tree row at 1x). Between
+    iterations the other threads run."""
+    current = optimizer.error()
+    if current <= params.getErrorTol() or optimizer.iterations() >= params.getMaxIterations():
+        return optimizer.values()
+    new = current
+    while True:
+        current = new
+        optimizer.iterate()
+        new = optimizer.error()
+        if (optimizer.iterations() >= params.getMaxIterations() or not math.isfinite(current)
+                or gtsam.checkConvergence(params, current, new)):
+            return optimizer.values()
+
+
 def _optimise(
     graph: gtsam.NonlinearFactorGraph, initial: gtsam.Values, max_iterations: int, what: str,
     relative_error_tol: float = 1e-5,
@@ -232,7 +253,7 @@ def _optimise(
     initial_error = float(graph.error(initial))
     try:
         optimizer = gtsam.LevenbergMarquardtOptimizer(graph, initial, params)
-        result = optimizer.optimize()
+        result = optimise_in_steps(optimizer, params)
     except RuntimeError as err:  # gtsam's C++ exceptions (indeterminant system, cheirality, ...)
         raise ReconstructionError(f"{what}: optimisation failed: {err}") from err
     final_error = float(graph.error(result))

@@ -29,6 +29,7 @@ import gtsam
 import numpy as np
 from gtsam.symbol_shorthand import B, F, G, T
 
+from orchard_mapping.core.bundle_adjustment import optimise_in_steps
 from orchard_mapping.errors import AlignmentError
 
 __all__ = ["SemanticBAParams", "SideShapes", "SemanticBAResult", "TrunkShape", "semantic_bundle_adjust",
@@ -182,7 +183,7 @@ def semantic_bundle_adjust(front: SideShapes, back: SideShapes, params: Semantic
     lm.setMaxIterations(params.max_iterations)
     opt = gtsam.LevenbergMarquardtOptimizer(graph, values, lm)
     e0 = graph.error(values)
-    result = opt.optimize()
+    result = optimise_in_steps(opt, lm)
     e1 = graph.error(result)
     fp = np.array([result.atPose3(F(k)).matrix() for k in range(len(front.poses))])
     bp = np.array([result.atPose3(B(k)).matrix() for k in range(len(back.poses))])

@@ -1,9 +1,10 @@
 """The node graph `orchard-map launch` starts (see supervisor.py for how it is started and watched).
 
-Nodes so far: `rgbd_odometry` (the camera topics in; each side's odometry, keyframes, fused cloud, trunk
-cylinders and local grounds out), `trunk_detector` (answers the odometry node's detection requests),
-`player` (replaying bags instead of a live camera) and `recorder`
-(the graph's outputs to an MCAP bag). Every node reads the same parameters file (config/ros_params.yaml by
+Nodes: `rgbd_odometry` (the camera topics in; each side's odometry, keyframes, fused cloud, trunk
+cylinders, local grounds and whole side map out), `trunk_detector` (answers the odometry node's detection
+requests), `side_merger` (both side maps in; the merge, the merged cloud, trunks, grounds and trees out),
+`trait_reporter` (the trees as TreeTraitsArray, RViz markers and trees.json / trees.csv), `player`
+(replaying bags instead of a live camera) and `recorder` (the graph's outputs to an MCAP bag). Every node reads the same parameters file (config/ros_params.yaml by
 default: the keys of config/default.yaml).
 """
 
@@ -14,16 +15,26 @@ from pathlib import Path
 from orchard_mapping.resources import config_dir
 from orchard_mapping.ros.supervisor import NodeSpec
 
+# topic names only (the node modules import rclpy and the core: the launcher does not need them)
+MERGED_TREES_TOPIC = "/orchard/merged/trees"
+
+
+def side_map_topic(side: str) -> str:
+    return f"/orchard/{side}/side_map"
+
 __all__ = ["graph_specs"]
 
 
 def graph_specs(bags: list[Path], *, rate: float = 1.0, start_s: float = 0.0, loop: bool = False,
                 record: Path | None = None, params: Path | None = None, restart: bool = True,
-                side: str | None = None, sides: list[str] | None = None) -> list[NodeSpec]:
+                side: str | None = None, sides: list[str] | None = None, out: Path | None = None) -> list[NodeSpec]:
     """The nodes of the graph, in start order. With bags, the player replays them (front, then back, unless
-    `sides` says otherwise) and the odometry node exits once it has published their side maps, which ends
-    the graph; without, the graph runs on the live camera topics until stopped."""
+    `sides` says otherwise) and the odometry node exits once it has published their side maps; with both
+    sides the trait reporter's first report then ends the graph (a refused merge ends it with a failure),
+    with one side the odometry node's exit does. Without bags the graph runs on the live camera topics
+    until stopped. `out`: the merge's and the trees' files are written there."""
     ros_args = ("--ros-args", "--params-file", str(params or config_dir() / "ros_params.yaml"))
+    out_arg = ("-p", f"out_dir:={Path(out).resolve()}") if out is not None else ()
     odometry = [*ros_args, "-p", "detector:=node"]
     if side:
         odometry += ["-p", f"side:={side}"]
@@ -34,13 +45,24 @@ def graph_specs(bags: list[Path], *, rate: float = 1.0, start_s: float = 0.0, lo
     specs.append(NodeSpec("trunk_detector", "trunk_detector", ros_args, restart=restart))
     if bags:
         sides = sides or (["front", "back"][: len(bags)] if len(bags) <= 2 else None)
+        two = sides is None or {"front", "back"} <= set(sides)  # a merge to wait for
         odometry += ["-p", f"exit_after_sides:={len(bags) if not loop else 0}"]
-        specs.append(NodeSpec("rgbd_odometry", "rgbd_odometry", tuple(odometry), ends_graph=not loop))
+        if two:
+            specs.append(NodeSpec("side_merger", "side_merger", (*ros_args, *out_arg, "-p", "exit_on_refusal:=true")))
+            specs.append(NodeSpec("trait_reporter", "trait_reporter",
+                                  (*ros_args, *out_arg, "-p", f"exit_after_reports:={0 if loop else 1}"),
+                                  ends_graph=not loop))
+        specs.append(NodeSpec("rgbd_odometry", "rgbd_odometry", tuple(odometry), ends_graph=not loop and not two,
+                              finite=two))
         player = [str(b) for b in bags] + ["--rate", str(rate), "--start", str(start_s)]
+        if two:  # the side merger and the trait reporter have started (imported the core) before the first frame
+            player += ["--wait-node", "side_merger", "--wait-node", "trait_reporter"]
         player += [a for s in (sides or []) for a in ("--side", s)]
         if loop:
             player.append("--loop")
         specs.append(NodeSpec("player", "player", tuple(player), finite=True))
     else:
+        specs.append(NodeSpec("side_merger", "side_merger", (*ros_args, *out_arg), restart=restart))
+        specs.append(NodeSpec("trait_reporter", "trait_reporter", (*ros_args, *out_arg), restart=restart))
         specs.append(NodeSpec("rgbd_odometry", "rgbd_odometry", tuple(odometry), restart=restart))
     return specs

@@ -14,9 +14,10 @@ from dataclasses import dataclass
 import numpy as np
 
 from orchard_mapping.core.trunks import TrunkLandmark
+from orchard_mapping.io.results import ResultTree
 
 __all__ = ["GroundRecord", "TrunkRecord", "ground_records", "grounds_from_msg", "grounds_to_msg", "stamp_header",
-           "trunks_from_msg", "trunks_to_msg"]
+           "trees_from_msg", "trees_to_msg", "trunks_from_msg", "trunks_to_msg"]
 
 
 @dataclass(frozen=True)
@@ -129,3 +130,51 @@ def ground_records(landmarks: list[TrunkLandmark], side: str) -> list[GroundReco
     """The local grounds of a side's trunk landmarks (trunks without a ground have none)."""
     return [GroundRecord(lm.id, side, _t3(lm.ground.point), _t3(lm.ground.normal), float(lm.ground.offset),
                          float(lm.ground.rmse_m), int(lm.ground.inliers)) for lm in landmarks if lm.ground is not None]
+
+
+def _nan(v: float | None) -> float:
+    return math.nan if v is None else float(v)
+
+
+def _none(v: float) -> float | None:
+    return None if math.isnan(v) else float(v)
+
+
+def trees_to_msg(trees: list[ResultTree], frame_id: str, stamp: float):
+    """TreeTraitsArray of result trees (frame map): a trait not measured is NaN (counts -1), as the message says.
+    Every value of trees.json travels except fruit positions and extra keys."""
+    from orchard_mapping_msgs.msg import TreeTraits, TreeTraitsArray
+
+    out = TreeTraitsArray()
+    stamp_header(out.header, stamp, frame_id)
+    for t in trees:
+        m = TreeTraits()
+        m.header = out.header
+        m.tree_id = int(t.id)
+        m.position.x, m.position.y, m.position.z = (float(v) for v in t.position)
+        m.trunk_diameter, m.height, m.canopy_volume = (_nan(t.trunk_diameter_m), _nan(t.height_m),
+                                                       _nan(t.canopy_volume_m3))
+        m.fruit_count = -1 if t.fruit_count is None else int(t.fruit_count)
+        m.fruit_count_front = m.fruit_count_back = -1
+        per = t.per_side or {}
+        for side in ("front", "back"):
+            own = per.get(side) or {}
+            setattr(m, f"trunk_id_{side}", int(own["trunk_id"]) if own.get("trunk_id") is not None else -1)
+            setattr(m, f"trunk_diameter_{side}", _nan(own.get("diameter_m")))
+        m.flags = list(t.flags)
+        out.trees.append(m)
+    return out
+
+
+def trees_from_msg(msg) -> tuple[str, float, list[ResultTree]]:
+    """(frame id, stamp s, trees) of a TreeTraitsArray: the result trees trees_to_msg sent."""
+    trees = []
+    for m in msg.trees:
+        per = {side: {"trunk_id": int(getattr(m, f"trunk_id_{side}")),
+                      "diameter_m": _none(getattr(m, f"trunk_diameter_{side}"))}
+               for side in ("front", "back") if getattr(m, f"trunk_id_{side}") >= 0}
+        trees.append(ResultTree(int(m.tree_id), (float(m.position.x), float(m.position.y), float(m.position.z)),
+                                _none(m.trunk_diameter), _none(m.height), _none(m.canopy_volume),
+                                None if m.fruit_count < 0 else int(m.fruit_count), per_side=per or None,
+                                flags=tuple(str(f) for f in m.flags)))
+    return msg.header.frame_id, msg.header.stamp.sec + 1e-9 * msg.header.stamp.nanosec, trees

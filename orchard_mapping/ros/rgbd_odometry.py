@@ -3,7 +3,8 @@
 Per side it runs the same `SideSession` as `orchard-map run`: the front end on each frame as it comes,
 each keyframe's images spooled to disk; when the side ends (the side topic changes or says `end`) loop
 detection, bundle adjustment, TSDF fusion with trunk detection, trunk cylinders and local grounds run in
-a worker thread while the next side is already being tracked.
+a child process (ros/finisher.py: in a thread they held the GIL for seconds and camera frames were lost)
+while the next side is already being tracked.
 
 In:  colour and aligned depth (sensor_msgs/Image, sensor-data QoS), CameraInfo, the side topic
      (std_msgs/String "front" / "back" / "end"; without one the `side` parameter names the side).
@@ -14,6 +15,7 @@ Out, per side (`/orchard/<side>/...`):
      cloud      the fused cloud, sensor_msgs/PointCloud2 x y z rgb, odom_<side> (latched)
      trunk_cylinders  orchard_mapping_msgs/TrunkCylinderArray (latched)
      local_grounds    orchard_mapping_msgs/LocalGroundArray (latched)
+     side_map   orchard_mapping_msgs/SideMap: the whole side map for the side merger (latched)
      status     std_msgs/String JSON: frames received, paired, processed, dropped (latched)
 Frames are decoded in the subscription callback and queued (never dropped by the node; a frame DDS lost
 never reaches it, and is counted from the player's side, see benchmarks/live.py).
@@ -21,6 +23,7 @@ never reaches it, and is counted from the player's side, see benchmarks/live.py)
 
 from __future__ import annotations
 
+import array
 import json
 import queue
 import sys
@@ -33,7 +36,7 @@ from dataclasses import dataclass, field
 import numpy as np
 from geometry_msgs.msg import PoseStamped
 from nav_msgs.msg import Odometry, Path as PathMsg
-from orchard_mapping_msgs.msg import LocalGroundArray, TrunkCylinderArray
+from orchard_mapping_msgs.msg import LocalGroundArray, SideMap as SideMapMsg, TrunkCylinderArray
 from rclpy.node import Node
 from sensor_msgs.msg import CameraInfo, Image, PointCloud2
 from std_msgs.msg import String
@@ -42,8 +45,10 @@ from orchard_mapping.core.geometry import matrix_to_quat
 from orchard_mapping.core.sidemap import SideMap
 from orchard_mapping.errors import OrchardMappingError
 from orchard_mapping.io.bags import camera_intrinsics, decode_frame, header_ns
+from orchard_mapping.io.sidemap_codec import SIDE_MAP_ENCODING, encode_side_map
 from orchard_mapping.pipeline import SIDES, SideSession, SpooledKeyframeImages, Timings
 from orchard_mapping.ros.clouds import cloud_to_msg
+from orchard_mapping.ros.finisher import SideFinishError, finish_in_child
 from orchard_mapping.ros.messages import TrunkRecord, ground_records, grounds_to_msg, stamp_header, trunks_to_msg
 from orchard_mapping.ros.params import ConfigParameters
 from orchard_mapping.ros.player import SIDE_END, STATUS_TOPIC as PLAYER_STATUS
@@ -133,6 +138,7 @@ class RGBDOdometryNode(Node):
                 "cloud": self.create_publisher(PointCloud2, f"{base}/cloud", LATCHED),
                 "trunks": self.create_publisher(TrunkCylinderArray, f"{base}/trunk_cylinders", LATCHED),
                 "grounds": self.create_publisher(LocalGroundArray, f"{base}/local_grounds", LATCHED),
+                "side_map": self.create_publisher(SideMapMsg, f"{base}/side_map", LATCHED),
             }
         return self._pubs[side]
 
@@ -317,11 +323,13 @@ class RGBDOdometryNode(Node):
             self.get_logger().info(f"{side} side ended after {session.frames} frames: bundle adjustment, fusion, "
                                    "trunks")
             try:
-                sm = session.finish(Timings())
+                sm = finish_in_child(session, Timings(), session.detect)
             except Exception as err:  # noqa: BLE001 - reported and counted; the node goes on with the next side
                 self._error(f"{side} side: no side map: {err}" if isinstance(err, OrchardMappingError)
                             else f"{side} side: no side map: {type(err).__name__}: {err}")
-                if not isinstance(err, OrchardMappingError):
+                if isinstance(err, SideFinishError) and not err.typed:
+                    self.get_logger().error(err.detail)
+                elif not isinstance(err, OrchardMappingError):
                     self.get_logger().error(traceback.format_exc())
                 self.counts.failed.append(side)
                 self._check_wanted()
@@ -356,6 +364,12 @@ class RGBDOdometryNode(Node):
         pubs["trunks"].publish(trunks_to_msg([TrunkRecord.from_landmark(lm, sm.side) for lm in sm.trunks],
                                              sm.frame_id, stamp))
         pubs["grounds"].publish(grounds_to_msg(ground_records(sm.trunks, sm.side), sm.frame_id, stamp))
+        msg = SideMapMsg()
+        stamp_header(msg.header, stamp, sm.frame_id)
+        msg.side, msg.encoding = sm.side, SIDE_MAP_ENCODING
+        msg.keyframes, msg.trunks, msg.cloud_points = len(sm.keyframe_poses), len(sm.trunks), len(sm.cloud_points)
+        msg.data = array.array("B", encode_side_map(sm))  # from bytes at once (an iterable is copied per item)
+        pubs["side_map"].publish(msg)
 
     def close(self) -> None:
         self._pair(flush=True)

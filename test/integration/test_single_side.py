@@ -29,6 +29,8 @@ from orchard_mapping.io.results import read_tum
 from orchard_mapping.core.types import StampedTrajectory
 from orchard_mapping.core.geometry import matrix_to_quat
 from orchard_mapping.core.sidemap import SideMap
+from orchard_mapping.io.sidemap_codec import decode_side_map, encode_side_map
+from orchard_mapping.ros.finisher import finish_in_child
 from orchard_mapping.io.landmarks import read_trunks
 from orchard_mapping.pipeline import SideSession, SpooledKeyframeImages, Timings, merge_sides, reconstruct_side, run
 from orchard_mapping.sim.scenario import load_scenario
@@ -243,14 +245,15 @@ def test_a_failed_run_leaves_no_folder_it_created(tmp_path):
 
 def test_a_side_fed_frame_by_frame_with_spooled_keyframes_is_the_side_run_wrote(reconstructed, tmp_path):
     """The live odometry node's way (frames one at a time, each keyframe's images spooled to disk and read
-    back for fusion after BA) gives the side `run` wrote from the same bag: same keyframes, cloud, trunks."""
+    back for fusion after BA in a child process) gives the side `run` wrote from the same bag: same
+    keyframes, cloud, trunks."""
     sim, out = reconstructed
     seq = read_rgbd(sim / "front")
     images = SpooledKeyframeImages(tmp_path)
     session = SideSession("front", seq.intrinsics, _with_true_masks(sim), images, bag=seq.bag)
     made = sum(session.add(frame)[1] for frame in seq)
     assert len(list(images.dir.glob("*_depth.npy"))) == made > 20
-    side = session.finish(Timings())
+    side = finish_in_child(session, Timings())  # as the node finishes a side: in a child process
     assert not images.dir.exists()  # the spool goes with the side
     tum = read_tum(out / "trajectory_front.tum")
     assert np.array_equal(side.keyframe_stamps, tum.stamps)
@@ -262,6 +265,11 @@ def test_a_side_fed_frame_by_frame_with_spooled_keyframes_is_the_side_run_wrote(
     assert len(side.trunks) == len(written) > 0
     for lm, t in zip(side.trunks, written):
         assert lm.id == t.id and np.abs(lm.base - t.base).max() < 1e-6
+    # the side map as the odometry node sends it to the side merger: back exactly (re-encoded: the same bytes)
+    data = encode_side_map(side)
+    again = decode_side_map(data)
+    assert encode_side_map(again) == data and len(again.trunks) == len(side.trunks)
+    assert np.array_equal(again.cloud_points, side.cloud_points) and again.trunks[0].band_views
 
 
 def test_result_folder_parts(reconstructed):

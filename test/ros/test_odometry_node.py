@@ -1,7 +1,8 @@
-"""The live odometry node against `orchard-map run`: `orchard-map launch --bag front --bag back --record`
-replays both sides of the 2-tree standard row at 1x into `rgbd_odometry` (player, odometry and recorder
-each in its own process, loopback DDS), and the side maps it publishes hold the trunks the offline run
-found, at the same places; no frame is lost on the way."""
+"""The node graph against `orchard-map run`: `orchard-map launch --bag front --bag back --record --out`
+replays both sides of the 2-tree standard row at 1x (player, odometry, trunk detector, side merger, trait
+reporter and recorder each in its own process, loopback DDS): the side maps hold the trunks the offline run
+found, at the same places, no frame is lost on the way, and the trees published (TreeTraitsArray, decoded
+from the recording) and written are the offline run's."""
 
 from __future__ import annotations
 
@@ -17,6 +18,7 @@ pytest.importorskip("rclpy")
 from orchard_mapping.cli.main import app  # noqa: E402
 from orchard_mapping.io.bags import iter_messages, iter_raw  # noqa: E402
 from orchard_mapping.io.landmarks import read_trunks  # noqa: E402
+from orchard_mapping.io.results import read_trees  # noqa: E402
 from orchard_mapping.resources import config_dir  # noqa: E402
 
 
@@ -34,11 +36,11 @@ def test_launched_graph_on_bags_gives_the_offline_trunks(standard_row, tmp_path)
     params = yaml.safe_load((config_dir() / "ros_params.yaml").read_text())
     params["/**"]["ros__parameters"]["trunks"].update(source="masks", masks_dir=str(sim / "masks"))
     (tmp_path / "params.yaml").write_text(yaml.safe_dump(params))
-    rec = tmp_path / "recorded"
+    rec, out = tmp_path / "recorded", tmp_path / "out"
     res = CliRunner().invoke(app, ["launch", "--bag", str(sim / "front"), "--bag", str(sim / "back"),
-                                   "--record", str(rec), "--params", str(tmp_path / "params.yaml")])
+                                   "--record", str(rec), "--params", str(tmp_path / "params.yaml"), "--out", str(out)])
     assert res.exit_code == 0, res.output[-4000:]
-    assert "rgbd_odometry finished: stopping the graph" in res.output, res.output[-4000:]
+    assert "trait_reporter finished: stopping the graph" in res.output, res.output[-4000:]
 
     status = [json.loads(m.data) for _, m in iter_messages(rec, "/orchard/odometry/status")][-1]
     sent = sum(1 for bag in ("front", "back") for _ in iter_raw(sim / bag, ["/camera/color/image_raw"]))
@@ -60,6 +62,34 @@ def test_launched_graph_on_bags_gives_the_offline_trunks(standard_row, tmp_path)
                 assert abs(2 * radius - t.diameter_m) < 1e-3, (side, radius, t.diameter_m)
         path = [m for _, m in iter_messages(rec, f"/orchard/{side}/keyframes")][-1]
         assert len(path.poses) > 20 and path.header.frame_id == f"odom_{side}"
+
+    # the trees: published by the trait reporter, as the offline run wrote them
+    offline_trees = read_trees(offline / "trees.json")
+    msgs = [m for _, m in iter_messages(rec, "/orchard/trees")]
+    assert len(msgs) == 1 and msgs[0].header.frame_id == "map", len(msgs)
+    live = msgs[0].trees
+    assert len(live) == len(offline_trees) >= 2, (len(live), len(offline_trees))
+    for m, t in zip(live, offline_trees):
+        assert m.tree_id == t.id and list(m.flags) == list(t.flags), (m, t)
+        pos = np.array([m.position.x, m.position.y, m.position.z])
+        assert np.linalg.norm(pos - np.array(t.position)) < 0.01, (pos, t.position)  # 1 cm
+        if t.trunk_diameter_m is None:
+            assert np.isnan(m.trunk_diameter)
+        else:
+            assert abs(m.trunk_diameter - t.trunk_diameter_m) < 1e-3, (m.trunk_diameter, t.trunk_diameter_m)  # 1 mm
+        assert np.isnan(m.height) and m.fruit_count == -1  # not measured yet, as offline (null)
+        for side in ("front", "back"):
+            own = (t.per_side or {}).get(side)
+            assert getattr(m, f"trunk_id_{side}") == (own["trunk_id"] if own else -1)
+    # and the files the graph wrote are the offline run's
+    written = read_trees(out / "trees.json")
+    assert [(w.id, w.flags) for w in written] == [(t.id, t.flags) for t in offline_trees]
+    assert max(np.linalg.norm(np.subtract(w.position, t.position)) for w, t in zip(written, offline_trees)) < 0.01
+    merge = json.loads((out / "side_merge.json").read_text())
+    offline_merge = json.loads((offline / "side_merge.json").read_text())
+    assert merge["method"] == offline_merge["method"] == "semantic_ba"
+    markers = [m for _, m in iter_messages(rec, "/orchard/tree_markers")][-1]
+    assert len(markers.markers) == 1 + 2 * len(offline_trees)  # DELETEALL, then a trunk and a label per tree
 
 
 def test_a_killed_trunk_detector_is_restarted_and_the_trunks_it_missed_are_flagged(standard_row, tmp_path):
@@ -109,3 +139,4 @@ def _cmdline(p) -> bytes:
         return (p / "cmdline").read_bytes()
     except OSError:
         return b""
+

@@ -378,3 +378,57 @@ def test_inconsistent_inputs_raise_typed_errors(side, mutate, match):
 def test_pose_graph_rejects_bad_loop():
     with pytest.raises(ReconstructionError, match="keyframe"):
         optimise_pose_graph(np.tile(np.eye(4), (3, 1, 1)), [LoopClosure(0, 3, np.eye(4), 10, 1.0)])
+
+
+def _noisy_pose_graph(n: int, seed: int):
+    """A chain of n poses with skip links, robust noise, started far from the solution."""
+    import gtsam
+
+    rng = np.random.default_rng(seed)
+    noise = gtsam.noiseModel.Robust.Create(gtsam.noiseModel.mEstimator.Huber.Create(1.345),
+                                           gtsam.noiseModel.Isotropic.Sigma(6, 0.05))
+    graph, values = gtsam.NonlinearFactorGraph(), gtsam.Values()
+    graph.add(gtsam.PriorFactorPose3(0, gtsam.Pose3(), gtsam.noiseModel.Isotropic.Sigma(6, 1e-6)))
+    for i in range(n):
+        values.insert(i, gtsam.Pose3(gtsam.Rot3.Rodrigues(*rng.normal(0, 0.2, 3)), rng.normal(0, 0.5, 3)))
+        for k in (1, 4):
+            if i >= k:
+                step = gtsam.Pose3(gtsam.Rot3.Rodrigues(0.0, 0.01 * k, 0.0), np.array([0.1 * k, 0.0, 0.0]))
+                graph.add(gtsam.BetweenFactorPose3(i - k, i, step, noise))
+    return graph, values
+
+
+def test_optimising_in_steps_is_optimize_and_lets_other_threads_run():
+    """optimise_in_steps gives GTSAM's optimize() result to the bit, and another thread of the process
+    runs between its iterations (optimize() holds the GIL throughout: the live odometry node lost frames)."""
+    import threading
+
+    import gtsam
+
+    from orchard_mapping.core.bundle_adjustment import optimise_in_steps
+
+    graph, values = _noisy_pose_graph(300, 0)
+    params = gtsam.LevenbergMarquardtParams()
+    params.setMaxIterations(30)
+    params.setRelativeErrorTol(1e-5)
+    whole = gtsam.LevenbergMarquardtOptimizer(graph, values, params)
+    want = whole.optimize()
+    stepped = gtsam.LevenbergMarquardtOptimizer(graph, values, params)
+    ticks, stop = [], threading.Event()
+
+    def tick() -> None:
+        while not stop.is_set():
+            ticks.append(stepped.iterations())
+
+    t = threading.Thread(target=tick)
+    t.start()
+    try:
+        got = optimise_in_steps(stepped, params)
+    finally:
+        stop.set()
+        t.join()
+    assert stepped.iterations() == whole.iterations() >= 3
+    for i in range(300):
+        assert np.array_equal(got.atPose3(i).matrix(), want.atPose3(i).matrix()), i
+    # the other thread ran while the optimisation was between its first and its last iteration
+    assert len({k for k in ticks if 0 < k < stepped.iterations()}) >= 1, sorted(set(ticks))

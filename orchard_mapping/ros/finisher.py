@@ -1,0 +1,97 @@
+"""Finishing a side in a child process, for the live odometry node (no rclpy here: the child never joins DDS).
+
+While a finished side is bundle-adjusted, fused and its trunks modelled, the node goes on tracking the
+next side from the camera topics. In a thread of the node's own process that work took Python's GIL for
+whole GTSAM iterations and Open3D calls (up to 1.5 s at a time on the 2-tree test row, measured), the
+node's subscriptions stopped taking frames and DDS dropped 16-22 of the next side's (1x, 2 cores). In a
+child process it shares only the cores, at a lower priority (`CHILD_NICE`), so tracking the camera
+comes first.
+
+The child is started with `spawn` (the node's DDS threads must not be forked) and gets the side's
+handover (pipeline.SideHandover: the front end's result, the spooled keyframe images' folder, the
+configuration). Trunk detection requests go back to the parent over the pipe when the node asks the
+trunk_detector node (the parent's `detect` callable answers them); with the configured detector the
+child creates its own. The side map comes back whole (pickled between the node's own processes).
+"""
+
+from __future__ import annotations
+
+import multiprocessing as mp
+import os
+import traceback
+
+from orchard_mapping.core.sidemap import SideMap
+from orchard_mapping.errors import OrchardMappingError
+from orchard_mapping.pipeline import Detect, SideSession, Timings, finish_side
+
+__all__ = ["CHILD_NICE", "SideFinishError", "finish_in_child"]
+
+CHILD_NICE = 5  # niceness added to the child: the camera's frames are tracked first
+
+
+class SideFinishError(OrchardMappingError):
+    """Finishing a side failed in the child process (the message says why; `detail` holds its traceback)."""
+
+    def __init__(self, message: str, detail: str = "", typed: bool = True) -> None:
+        super().__init__(message)
+        self.detail = detail
+        self.typed = typed  # the child raised an OrchardMappingError (bad input), not a bug
+
+
+def _child(job, conn, remote: bool) -> None:
+    try:
+        os.nice(CHILD_NICE)
+    except OSError:
+        pass
+
+    def ask(color, stamp):
+        conn.send(("detect", (color, stamp)))
+        return conn.recv()
+
+    try:
+        timings = Timings()
+        sm = finish_side(job, timings, ask if remote else None)
+        conn.send(("done", (sm, dict(timings.stages))))
+    except OrchardMappingError as err:
+        conn.send(("error", (str(err), traceback.format_exc(), True)))
+    except BaseException as err:  # noqa: BLE001 - reported to the parent with its traceback
+        conn.send(("error", (f"{type(err).__name__}: {err}", traceback.format_exc(), False)))
+    finally:
+        conn.close()
+
+
+def finish_in_child(session: SideSession, timings: Timings, detect: Detect | None = None) -> SideMap:
+    """session.finish(timings) run in a child process; `detect` (the parent's) answers the child's trunk
+    detection requests, None: the child uses the configured detector. Lets go of the keyframe images.
+    SideFinishError when the child failed or died."""
+    ctx = mp.get_context("spawn")
+    parent, child = ctx.Pipe()
+    proc = ctx.Process(target=_child, args=(session.handover(), child, detect is not None),
+                       name=f"finish-{session.side}", daemon=True)
+    try:
+        proc.start()
+        child.close()
+        while True:
+            try:
+                kind, payload = parent.recv()
+            except EOFError:
+                proc.join(timeout=10)
+                raise SideFinishError(f"{session.side} side: the process finishing it died "
+                                      f"(exit code {proc.exitcode})", typed=False) from None
+            if kind == "detect":
+                parent.send(detect(*payload))
+            elif kind == "done":
+                sm, stages = payload
+                for stage, seconds in stages.items():
+                    timings.add(stage, seconds)
+                return sm
+            else:
+                message, detail, typed = payload
+                raise SideFinishError(message, detail, typed)
+    finally:
+        parent.close()
+        proc.join(timeout=30)
+        if proc.is_alive():
+            proc.kill()
+            proc.join()
+        session.images.close()

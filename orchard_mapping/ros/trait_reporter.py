@@ -1,0 +1,127 @@
+"""`trait_reporter`: the trees of the merged row out, as messages, RViz/Foxglove markers and report files.
+
+In:  /orchard/merged/trees  TreeTraitsArray from the side merger (latched): each tree's position in map,
+     its two-side trunk diameter and each side's own, flags
+Out (latched, frame map):
+     /orchard/trees          orchard_mapping_msgs/TreeTraitsArray: every tree with the traits measured so far
+                             (trunk diameter; height, canopy volume and fruit count stay NaN / -1 until
+                             they are measured, as in trees.json where they are null)
+     /orchard/tree_markers   visualization_msgs/MarkerArray: a cylinder per trunk (its diameter, 0.6 m
+                             high, green when seen from both sides, orange from one) and a text label
+                             (tree id and diameter in mm) above it
+With `out_dir` set, trees.json and trees.csv are written there as `orchard-map run` writes them (each
+file atomically; the trees are validated before anything is written). With `exit_after_reports`
+(replaying bags) the node exits 0 after that many reports, which ends the graph.
+"""
+
+from __future__ import annotations
+
+import math
+import sys
+from pathlib import Path
+
+from orchard_mapping_msgs.msg import TreeTraitsArray
+from rclpy.node import Node
+from visualization_msgs.msg import Marker, MarkerArray
+
+from orchard_mapping.errors import ResultFormatError
+from orchard_mapping.io.results import ResultTree, write_trees
+from orchard_mapping.ros.messages import stamp_header, trees_from_msg, trees_to_msg
+from orchard_mapping.ros.params import ConfigParameters
+from orchard_mapping.ros.qos import LATCHED
+from orchard_mapping.ros.graph import MERGED_TREES_TOPIC
+from orchard_mapping.ros.spin import StopNode, run_node
+
+__all__ = ["TREES_TOPIC", "TraitReporterNode", "main", "tree_markers"]
+
+TREES_TOPIC = "/orchard/trees"
+MARKERS_TOPIC = "/orchard/tree_markers"
+_MARKER_HEIGHT_M = 0.6  # m, drawn trunk length: the part a diameter is read on and a little above
+_DEFAULT_DIAMETER_M = 0.1  # m, drawn for a trunk whose diameter was not measured
+
+
+def tree_markers(trees: list[ResultTree], frame_id: str, stamp: float) -> MarkerArray:
+    """A trunk cylinder and a text label per tree (RViz / Foxglove), ids 2k and 2k+1; the first marker
+    deletes what an earlier report drew."""
+    out = MarkerArray()
+    clear = Marker()
+    clear.action = Marker.DELETEALL
+    out.markers.append(clear)
+    for t in trees:
+        both = not any(f.startswith("seen_from_") for f in t.flags)
+        d = t.trunk_diameter_m if t.trunk_diameter_m is not None else _DEFAULT_DIAMETER_M
+        trunk, label = Marker(), Marker()
+        for k, m in enumerate((trunk, label)):
+            stamp_header(m.header, stamp, frame_id)
+            m.ns, m.id, m.action = "trees", 2 * t.id + k, Marker.ADD
+            m.pose.orientation.w = 1.0
+            m.color.a = 1.0
+        trunk.type = Marker.CYLINDER
+        trunk.pose.position.x, trunk.pose.position.y, trunk.pose.position.z = t.position
+        # map is odom_front, the camera's optical frame: y points down, so "up the trunk" is -y. The marker's
+        # axis is its z: turned onto -y (a quarter turn about x).
+        trunk.pose.position.y -= _MARKER_HEIGHT_M / 2
+        trunk.pose.orientation.x = trunk.pose.orientation.w = math.sqrt(0.5)
+        trunk.scale.x = trunk.scale.y = float(d)
+        trunk.scale.z = _MARKER_HEIGHT_M
+        trunk.color.r, trunk.color.g, trunk.color.b = (0.2, 0.8, 0.2) if both else (1.0, 0.6, 0.1)
+        label.type = Marker.TEXT_VIEW_FACING
+        label.pose.position.x, label.pose.position.y, label.pose.position.z = t.position
+        label.pose.position.y -= _MARKER_HEIGHT_M + 0.15
+        label.scale.z = 0.12  # m, text height
+        label.color.r = label.color.g = label.color.b = 1.0
+        label.text = f"tree {t.id}" + (f": {1000 * t.trunk_diameter_m:.0f} mm" if t.trunk_diameter_m else "")
+        out.markers += [trunk, label]
+    return out
+
+
+class TraitReporterNode(Node):
+    def __init__(self) -> None:
+        super().__init__("trait_reporter")
+        self.params = ConfigParameters(self)
+        self.declare_parameter("out_dir", "")  # where trees.json and trees.csv go ("": not written)
+        self.declare_parameter("exit_after_reports", 0)  # replaying bags: exit after this many (0: run on)
+        self.reports = 0
+        self._stop: int | None = None
+        self._stop_ticks = 1
+        self._trees = self.create_publisher(TreeTraitsArray, TREES_TOPIC, LATCHED)
+        self._markers = self.create_publisher(MarkerArray, MARKERS_TOPIC, LATCHED)
+        self.create_subscription(TreeTraitsArray, MERGED_TREES_TOPIC, self._on_trees, LATCHED)
+        self.create_timer(0.5, self._check_done)
+
+    def _check_done(self) -> None:
+        # the tick after the one that saw the last report: the recorder and RViz have had 0.5-1 s to take it
+        if self._stop is not None:
+            if self._stop_ticks > 0:
+                self._stop_ticks -= 1
+                return
+            raise StopNode(self._stop)
+
+    def _on_trees(self, msg: TreeTraitsArray) -> None:
+        frame, stamp, trees = trees_from_msg(msg)
+        out = self.get_parameter("out_dir").value
+        if out:
+            try:
+                Path(out).mkdir(parents=True, exist_ok=True)
+                write_trees(out, trees, frame=frame)
+            except (ResultFormatError, OSError) as err:
+                self.get_logger().error(f"trees of {MERGED_TREES_TOPIC} not written to {out}: {err}")
+                self._stop = 1
+                return
+        self._trees.publish(trees_to_msg(trees, frame, stamp))
+        self._markers.publish(tree_markers(trees, frame, stamp))
+        self.reports += 1
+        both = sum(1 for t in trees if not any(f.startswith("seen_from_") for f in t.flags))
+        self.get_logger().info(f"report {self.reports}: {len(trees)} trees ({both} seen from both sides)"
+                               + (f", written to {out}" if out else ""))
+        wanted = self.get_parameter("exit_after_reports").value
+        if wanted and self.reports >= wanted:
+            self._stop = 0
+
+
+def main(argv: list[str] | None = None) -> int:
+    return run_node(TraitReporterNode, "trait_reporter")
+
+
+if __name__ == "__main__":
+    sys.exit(main())
