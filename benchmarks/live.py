@@ -5,7 +5,9 @@ node its own process, loopback DDS); the recorder keeps the odometry node's stat
 shows, per rate: colour images sent (counted in the bags), received by the odometry node, lost (sent -
 received), the losses the node reported (against the player's count after each bag; of them, those it saw
 by itself as gaps in the camera's rhythm), frames tracked, the time from
-each side's end to its side map, and the whole replay's wall time.
+each side's end to its side map, the time from the second side's end (the player's `end` on the side
+topic, as the recorder received it) to the trees published by the trait reporter (as the recorder
+received them) with the side merger's own seconds, and the whole replay's wall time.
 
 Usage:
   python benchmarks/live.py [--trees 2] [--rates 1 2] [--seed 0] [--workdir /tmp/live_bench] [--sim DIR]
@@ -48,11 +50,14 @@ def replay(sim: Path, rate: float, work: Path, masks: bool) -> dict:
     with (work / f"launch_{rate:g}x.log").open("w") as log:
         rc = subprocess.run([sys.executable, "-m", "orchard_mapping.cli.main", "launch", "--bag", str(sim / "front"),
                              "--bag", str(sim / "back"), "--rate", str(rate), "--record", str(rec),
-                             "--params", str(pfile)], env=env, stdout=log, stderr=subprocess.STDOUT).returncode
+                             "--params", str(pfile), "--out", str(work / f"result_{rate:g}x")], env=env, stdout=log, stderr=subprocess.STDOUT).returncode
     wall = time.perf_counter() - t0
     if rc != 0:
         raise SystemExit(f"{rate:g}x: orchard-map launch exited {rc} (log {work}/launch_{rate:g}x.log)")
     status = [json.loads(m.data) for _, m in iter_messages(rec, "/orchard/odometry/status")][-1]
+    side_end = [t for t, m in iter_messages(rec, "/orchard/side") if m.data == "end"]
+    trees = [t for t, _ in iter_messages(rec, "/orchard/trees")]
+    merger = [json.loads(m.data) for _, m in iter_messages(rec, "/orchard/side_merger/status")][-1]
     stamps = {side: [m.log_time_ns for m in iter_raw(sim / side, [COLOUR])] for side in ("front", "back")}
     sent = sum(len(t) for t in stamps.values())
     duration = sum((t[-1] - t[0]) / 1e9 for t in stamps.values())
@@ -60,7 +65,13 @@ def replay(sim: Path, rate: float, work: Path, masks: bool) -> dict:
             "lost_reported": status["lost_vs_player"], "gaps_seen": status["missed"],
             "tracked": sum(status["processed"].values()),
             "side_map_latency_s": status["side_map_latency_s"], "recording_s": duration, "wall_s": wall,
+            "second_end_to_trees_s": trees[-1] - side_end[-1] if trees and side_end else None,
+            "merge_s": merger["seconds"][-1] if merger["seconds"] else None,
             "errors": status["errors"]}
+
+
+def _f(v: float | None) -> str:
+    return "n/a" if v is None else f"{v:.1f}"
 
 
 def main() -> None:
@@ -80,13 +91,15 @@ def main() -> None:
     rows = [replay(sim, r, args.workdir, args.masks) for r in args.rates]
     t = Table(title=f"node graph on a replayed {sim.name} row (orchard-map launch), 2 cores")
     for col in ("rate", "colour sent", "received", "lost", "lost, reported by node", "of which gaps seen", "tracked",
-                "side end -> map front s", "side end -> map back s", "recording s", "wall s"):
+                "side end -> map front s", "side end -> map back s", "2nd side end -> trees s", "merge s",
+                "recording s", "wall s"):
         t.add_column(col, justify="right")
     for r in rows:
         lat = r["side_map_latency_s"]
         t.add_row(f"{r['rate']:g}x", str(r["sent"]), str(r["received"]), str(r["lost"]),
                   str(r["lost_reported"]), str(r["gaps_seen"]), str(r["tracked"]), f"{lat.get('front', float('nan')):.1f}",
-                  f"{lat.get('back', float('nan')):.1f}", f"{r['recording_s']:.1f}", f"{r['wall_s']:.1f}")
+                  f"{lat.get('back', float('nan')):.1f}", _f(r["second_end_to_trees_s"]), _f(r["merge_s"]),
+                  f"{r['recording_s']:.1f}", f"{r['wall_s']:.1f}")
     Console(width=200).print(t)
     if args.json:
         args.json.write_text(json.dumps(rows, indent=1))
