@@ -24,6 +24,7 @@ EXPECTED_TYPES = {
     "TrunkCylinder",
     "TrunkDetection",
     "TrunkDetectionArray",
+    "SideMap",
     "TrunkCylinderArray",
     "LocalGround",
     "LocalGroundArray",

@@ -18,6 +18,7 @@ OURS = [
     "TrunkCylinderArray",
     "TrunkDetection",
     "TrunkDetectionArray",
+    "SideMap",
 ]
 
 
