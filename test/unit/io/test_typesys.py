@@ -67,6 +67,10 @@ def test_cdr_round_trip_of_a_nested_message() -> None:
         fruit_count_front=20,
         fruit_count_back=15,
         flags=["trunk_occluded"],
+        trunk_id_front=2,
+        trunk_id_back=-1,
+        trunk_diameter_front=0.118,
+        trunk_diameter_back=0.121,
     )
     msg = t["orchard_mapping_msgs/msg/TreeTraitsArray"](header=header, trees=[tree, tree])
     raw = store.serialize_cdr(msg, "orchard_mapping_msgs/msg/TreeTraitsArray")
