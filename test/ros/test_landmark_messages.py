@@ -59,3 +59,29 @@ def test_grounds_round_trip_and_pair_with_their_trunk():
     frame, stamp, got = grounds_from_msg(msg)
     assert (frame, stamp) == ("odom_back", 5.5)
     assert got == records
+
+
+def test_trees_round_trip_through_tree_traits_array():
+    """Result trees -> TreeTraitsArray -> bytes -> trees: every value trees.json keeps (None as NaN / -1)."""
+    from orchard_mapping_msgs.msg import TreeTraitsArray
+
+    from orchard_mapping.io.results import ResultTree
+    from orchard_mapping.ros.messages import trees_from_msg, trees_to_msg
+    from orchard_mapping.ros.trait_reporter import tree_markers
+
+    trees = [
+        ResultTree(0, (1.0, -0.5, 2.25), 0.081, per_side={"front": {"trunk_id": 3, "diameter_m": 0.082},
+                                                          "back": {"trunk_id": 7, "diameter_m": None}}),
+        ResultTree(1, (3.5, -0.4, 2.3), None, flags=("seen_from_back_only", "trunk_hidden_at_diameter_height"),
+                   per_side={"back": {"trunk_id": 8, "diameter_m": None}}),
+        ResultTree(2, (5.0, -0.45, 2.2), 0.07, height_m=2.4, canopy_volume_m3=1.5, fruit_count=12),
+    ]
+    msg = deserialize_message(serialize_message(trees_to_msg(trees, "map", 12.5)), TreeTraitsArray)
+    frame, stamp, back = trees_from_msg(msg)
+    assert frame == "map" and stamp == pytest.approx(12.5)
+    assert [t.to_json() for t in back] == [t.to_json() for t in trees]
+    assert msg.trees[1].trunk_id_front == -1 and math.isnan(msg.trees[1].trunk_diameter)
+    assert msg.trees[0].fruit_count == -1 and msg.trees[2].fruit_count == 12
+    markers = tree_markers(trees, "map", 12.5).markers
+    assert len(markers) == 1 + 2 * len(trees) and markers[2].text == "tree 0: 81 mm"
+    assert markers[3].color.g < markers[1].color.g  # seen from one side: orange, from both: green
