@@ -30,6 +30,7 @@ __all__ = [
     "TreeMatching",
     "associate_stamps",
     "double_count",
+    "fit_map_to_world",
     "map_merge_error",
     "match_trees",
     "merge_error",
@@ -155,7 +156,7 @@ def _pose_points(T: np.ndarray) -> np.ndarray:
     return np.concatenate([c] + [c + _AXIS_POINT_M * T[:, :3, a] for a in range(3)])
 
 
-def _fit_map_to_world(est: StampedTrajectory, true: StampedTrajectory, T_world_odom: np.ndarray,
+def fit_map_to_world(est: StampedTrajectory, true: StampedTrajectory, T_world_odom: np.ndarray,
                       max_dt_s: float) -> np.ndarray:
     """(4, 4) the rigid map -> world transform that best fits a side's keyframes in map to its true poses."""
     order_t = np.argsort(true.stamps, kind="stable")
@@ -179,8 +180,8 @@ def map_merge_error(front_map: StampedTrajectory, back_map: StampedTrajectory, f
     (both sides bent alike); the back side is misplaced by D = A_front A_back^-1. Rotation: the angle of D;
     translation: |D p - p| over points_world (P, 3) m (the true trunk bases). The true poses of each side
     are in its odom frame, T_world_<side> (4, 4) places them in world."""
-    A_f = _fit_map_to_world(front_map, front_true, T_world_front, max_dt_s)
-    A_b = _fit_map_to_world(back_map, back_true, T_world_back, max_dt_s)
+    A_f = fit_map_to_world(front_map, front_true, T_world_front, max_dt_s)
+    A_b = fit_map_to_world(back_map, back_true, T_world_back, max_dt_s)
     D = A_f @ np.linalg.inv(A_b)
     pts = np.asarray(points_world, dtype=float).reshape(-1, 3)
     if pts.shape[0] == 0:
