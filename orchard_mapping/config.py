@@ -49,6 +49,10 @@ class InputConfig(_Section):
     depth_max_m: float = Field(6.0, gt=0.0)
     # "rgbd": colour + aligned depth; "rgb": colour only (monocular, up to scale).
     mode: Literal["rgbd", "rgb"] = "rgbd"
+    # One bag holding both sides (a continuous drive round the row): "topic" labels frames by the side
+    # topic, "trajectory" by the U-turn in the camera's path (core.sides), "auto" the topic when the bag
+    # has one. The live odometry node reads it the same way (without a side topic or `side` parameter).
+    side_source: Literal["auto", "topic", "trajectory"] = "auto"
 
 
 class FramesConfig(_Section):

@@ -32,6 +32,7 @@ from orchard_mapping.core.geometry import SlabIndex, matrix_to_quat, move_with_k
 from orchard_mapping.core.odometry import RGBDFrontEnd
 from orchard_mapping.core.semantic_ba import SemanticBAResult, SideShapes, TrunkShape, semantic_bundle_adjust, trunk_frame
 from orchard_mapping.core.sidemap import FrontEndResult, LoopClosure, SideMap
+from orchard_mapping.core.sides import UTurnSides
 from orchard_mapping.core.cylinder import Cylinder
 from orchard_mapping.core.trunks import TrunkLandmark, TrunkView, build_trunk_landmarks, ground_around_trunk
 from orchard_mapping.core.detection import CLASS_TRUNK
@@ -73,8 +74,12 @@ class RunResult:
     merge_refused: str | None = None  # why the sides were not merged (run raises MergeRefusedError)
 
 
+DRIVE = "drive"  # open_sides' key for one bag whose sides come from the camera's trajectory
+
+
 def open_sides(front: Path, back: Path | None, cfg: OrchardConfig) -> dict[str, RGBDSequence]:
-    """Two bags (front, back), or one bag whose side topic labels the frames."""
+    """Two bags (front, back), or one bag whose side topic labels the frames, or (key DRIVE) one bag whose
+    sides the camera's U-turn tells (input.side_source)."""
     inp = cfg.input
     kw = dict(mode=inp.mode, max_pair_dt_s=inp.max_pair_dt_s, depth_min_m=inp.depth_min_m, depth_max_m=inp.depth_max_m)
     if back is not None:
@@ -90,9 +95,11 @@ def open_sides(front: Path, back: Path | None, cfg: OrchardConfig) -> dict[str, 
         return seqs
     seq = read_rgbd(front, inp.topics, **kw)
     labels = set(seq.sides) - {""}
+    if inp.side_source == "trajectory" or (inp.side_source == "auto" and not labels):
+        return {DRIVE: seq}  # the sides come from the camera's U-turn (reconstruct_drive)
     if not labels:
-        raise BagFormatError(f"a single bag needs the side topic to tell front from back; no labels found",
-                             bag=str(front), topic=inp.topics.side)
+        raise BagFormatError("a single bag needs the side topic to tell front from back (input.side_source: "
+                             "topic); no labels found", bag=str(front), topic=inp.topics.side)
     return {side: seq for side in SIDES if side in labels}
 
 
@@ -318,6 +325,38 @@ def reconstruct_side(seq: RGBDSequence, side: str, cfg: OrchardConfig, timings: 
             progress(side, i + 1, n)
     session.seconds = time.perf_counter() - t0  # the front end's stage includes decoding the bag's images
     return session.finish(timings)
+
+
+def reconstruct_drive(seq: RGBDSequence, cfg: OrchardConfig, timings: Timings,
+                      progress: Progress | None = None) -> dict[str, SideMap]:
+    """One continuous drive round a row without side labels: each frame tracked by its side's `SideSession`,
+    the side changing half way round the U-turn (core.sides.UTurnSides), as the live odometry node does."""
+    turns = UTurnSides()
+    sessions: dict[str, SideSession] = {}
+    session: SideSession | None = None
+    seconds: dict[str, float] = {}
+    for i, frame in enumerate(seq):
+        if session is None:
+            if turns.side in sessions:
+                raise BagFormatError(f"the drive turns back to the {turns.side} side at frame {i} ({frame.stamp:.3f} s): "
+                                     "one bag holds one drive round one row (front, U-turn, back)", bag=seq.bag)
+            session = sessions[turns.side] = SideSession(turns.side, seq.intrinsics, cfg,
+                                                         BagKeyframeImages(seq, turns.side, False), bag=seq.bag)
+            t0 = time.perf_counter()
+        pose, _ = session.add(frame)
+        if turns.update(pose):
+            seconds[session.side] = time.perf_counter() - t0
+            session = None
+        if progress:
+            progress("drive", i + 1, len(seq))
+    if session is not None:
+        seconds[session.side] = time.perf_counter() - t0
+    log.info("drive: %s", ", ".join(f"{side} {s.frames} frames" for side, s in sessions.items()))
+    out = {}
+    for side, s in sessions.items():
+        s.seconds = seconds[side]  # the front end's stage includes decoding the bag's images
+        out[side] = s.finish(timings)
+    return out
 
 
 def release_freed_memory() -> None:
@@ -785,6 +824,13 @@ def _run(front: Path, back: Path | None, out: Path, cfg: OrchardConfig, progress
     labelled = back is None
     sides: dict[str, SideMap] = {}
     refused: str | None = None
+    if DRIVE in seqs:
+        seq = seqs.pop(DRIVE)
+        timings.frames += len(seq)
+        timings.recording_duration_s += seq.duration
+        for side, sm in reconstruct_drive(seq, cfg, timings, progress).items():
+            sides[side] = sm
+            write_side(out, sm)
     for side, seq in seqs.items():
         timings.frames += int(np.sum(_side_mask(seq, side))) if labelled else len(seq)
         if labelled:

@@ -36,13 +36,15 @@ def detections_from_instance_mask(m: np.ndarray) -> list[Detection]:
 
 
 class MaskFolderDetector:
-    """Detections read from `root/<side>/` by frame stamp."""
+    """Detections read from `root/<side>/` by frame stamp, or from `root/` itself when it holds the index
+    (one folder for a bag that holds both sides: the simulator's masks/loop/)."""
 
     def __init__(self, root: str | Path, side: str, stamp_tol_s: float = 0.001) -> None:
-        self.dir = Path(root) / side
+        self.dir = Path(root) / side if not (Path(root) / "index.csv").is_file() else Path(root)
         index = self.dir / "index.csv"
         if not index.is_file():
-            raise DetectorError(f"trunk masks: no {index} (trunks.masks_dir must hold <side>/index.csv)")
+            raise DetectorError(f"trunk masks: no {index} (trunks.masks_dir must hold <side>/index.csv, or "
+                                "index.csv for a bag of both sides)")
         stamps, frames = [], []
         with index.open(newline="") as f:
             for i, row in enumerate(csv.DictReader(f)):

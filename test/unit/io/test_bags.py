@@ -319,6 +319,10 @@ def _our_messages() -> dict[str, Any]:
         fruit_count_front=30,
         fruit_count_back=-1,
         flags=["one_side_missing", "trunk_occluded"],
+        trunk_id_front=3,
+        trunk_id_back=-1,
+        trunk_diameter_front=0.121,
+        trunk_diameter_back=float("nan"),
     )
     quat = t["geometry_msgs/msg/Quaternion"](x=0.0, y=0.0, z=0.7071067811865476, w=0.7071067811865476)
     merge = t["orchard_mapping_msgs/msg/SideMerge"](
@@ -344,6 +348,9 @@ def _our_messages() -> dict[str, Any]:
             header=hdr, image_width=64, image_height=48, detections=[t["orchard_mapping_msgs/msg/TrunkDetection"](
                 class_id=1, score=0.5, box=np.array([1.0, 2.0, 30.0, 40.0], np.float32), mask_x=1, mask_y=2,
                 mask_width=2, mask_height=2, mask=np.array([1, 0, 1, 1], np.uint8))]),
+        "SideMap": t["orchard_mapping_msgs/msg/SideMap"](
+            header=msg_header(12.5, "odom_front"), side="front", encoding="orchard_mapping.side_map/1+npz",
+            keyframes=40, trunks=2, cloud_points=1000, data=np.frombuffer(b"PK\x03\x04 payload", np.uint8)),
     }
 
 
