@@ -83,6 +83,27 @@ def standard_row(tmp_path_factory, seed_offset):
     return sim, out
 
 
+@pytest.fixture(scope="session")
+def loop_row(tmp_path_factory, seed_offset):
+    """The 2-tree `loop` row (one continuous drive round the row in one bag, 15 Hz, true trunk masks for
+    every frame) and `run` on that one bag with its sides told by the camera's U-turn
+    (input.side_source=trajectory: the bag's side topic is ignored) and trunks from the masks: (sim folder,
+    result folder). Shared by the single-side tests and the node graph's."""
+    from orchard_mapping.config import load_config
+    from orchard_mapping.pipeline import run
+    from orchard_mapping.sim.scenario import load_scenario
+    from orchard_mapping.sim.simulate import simulate
+
+    root = tmp_path_factory.mktemp("loop")
+    sc = load_scenario("loop", {"row.n_trees": 2, "camera.rate_hz": 15, "masks_every": 1})
+    sim = simulate(sc, 11 + seed_offset, root / "loop").out_dir
+    out = root / "result"
+    run(sim / "loop", None, out, load_config(overrides={
+        "input": {"side_source": "trajectory"},
+        "trunks": {"source": "masks", "masks_dir": str(sim / "masks" / "loop")}}))
+    return sim, out
+
+
 class Accuracy:
     """Asserts a measured value against its limit and records both (see the module docstring)."""
 

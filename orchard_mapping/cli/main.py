@@ -143,6 +143,7 @@ def launch(
     restart: bool = typer.Option(True, "--restart/--no-restart", help="Start a node again when it dies (live)."),
     side: Optional[str] = typer.Option(None, help="Live: the side being recorded when no side topic says."),
     out: Optional[Path] = typer.Option(None, help="Write the merge's and the trees' files here, as `run` does."),
+    drive: bool = typer.Option(False, help="The one --bag holds a whole drive round the row (front, U-turn, back)."),
 ) -> None:
     """Start the ROS 2 node graph (docs/ros.md), each node in its own process; Ctrl-C stops it cleanly."""
     from orchard_mapping.errors import OrchardMappingError
@@ -151,7 +152,7 @@ def launch(
 
     try:
         specs = graph_specs(bag, rate=rate, start_s=start, loop=loop, record=record, params=params,
-                            restart=restart, side=side, out=out)
+                            restart=restart, side=side, out=out, drive=drive)
         code = Supervisor(specs).run()
     except OrchardMappingError as err:
         raise _fail(err) from err

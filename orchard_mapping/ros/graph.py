@@ -13,7 +13,12 @@ from __future__ import annotations
 from pathlib import Path
 
 from orchard_mapping.resources import config_dir
+from orchard_mapping.errors import OrchardMappingError
 from orchard_mapping.ros.supervisor import NodeSpec
+
+class GraphError(OrchardMappingError, ValueError):
+    """A graph that cannot be started as asked (names what is wrong)."""
+
 
 # topic names only (the node modules import rclpy and the core: the launcher does not need them)
 MERGED_TREES_TOPIC = "/orchard/merged/trees"
@@ -27,12 +32,15 @@ __all__ = ["graph_specs"]
 
 def graph_specs(bags: list[Path], *, rate: float = 1.0, start_s: float = 0.0, loop: bool = False,
                 record: Path | None = None, params: Path | None = None, restart: bool = True,
-                side: str | None = None, sides: list[str] | None = None, out: Path | None = None) -> list[NodeSpec]:
+                side: str | None = None, sides: list[str] | None = None, out: Path | None = None,
+                drive: bool = False) -> list[NodeSpec]:
     """The nodes of the graph, in start order. With bags, the player replays them (front, then back, unless
     `sides` says otherwise) and the odometry node exits once it has published their side maps; with both
     sides the trait reporter's first report then ends the graph (a refused merge ends it with a failure),
     with one side the odometry node's exit does. Without bags the graph runs on the live camera topics
-    until stopped. `out`: the merge's and the trees' files are written there."""
+    until stopped. `out`: the merge's and the trees' files are written there. `drive`: one bag holds a whole
+    drive round the row (front, U-turn, back): its sides come from its side topic or the U-turn
+    (input.side_source), and both are merged."""
     ros_args = ("--ros-args", "--params-file", str(params or config_dir() / "ros_params.yaml"))
     out_arg = ("-p", f"out_dir:={Path(out).resolve()}") if out is not None else ()
     odometry = [*ros_args, "-p", "detector:=node"]
@@ -44,9 +52,12 @@ def graph_specs(bags: list[Path], *, rate: float = 1.0, start_s: float = 0.0, lo
     # a dead detector is started again also on bags: the odometry node flags what it could not see meanwhile
     specs.append(NodeSpec("trunk_detector", "trunk_detector", ros_args, restart=restart))
     if bags:
-        sides = sides or (["front", "back"][: len(bags)] if len(bags) <= 2 else None)
-        two = sides is None or {"front", "back"} <= set(sides)  # a merge to wait for
-        odometry += ["-p", f"exit_after_sides:={len(bags) if not loop else 0}"]
+        if drive and len(bags) != 1:
+            raise GraphError(f"--drive replays one bag holding both sides, got {len(bags)} bags")
+        if not drive:
+            sides = sides or (["front", "back"][: len(bags)] if len(bags) <= 2 else None)
+        two = drive or sides is None or {"front", "back"} <= set(sides)  # a merge to wait for
+        odometry += ["-p", f"exit_after_sides:={(2 if drive else len(bags)) if not loop else 0}"]
         if two:
             specs.append(NodeSpec("side_merger", "side_merger", (*ros_args, *out_arg, "-p", "exit_on_refusal:=true")))
             specs.append(NodeSpec("trait_reporter", "trait_reporter",

@@ -7,7 +7,9 @@ a child process (ros/finisher.py: in a thread they held the GIL for seconds and 
 while the next side is already being tracked.
 
 In:  colour and aligned depth (sensor_msgs/Image, sensor-data QoS), CameraInfo, the side topic
-     (std_msgs/String "front" / "back" / "end"; without one the `side` parameter names the side).
+     (std_msgs/String "front" / "back" / "end"; without one the `side` parameter names the side, and
+     without either, or with input.side_source=trajectory, the camera's U-turn round the row end does:
+     core.sides, as `orchard-map run` does for one bag of a whole drive).
 Out, per side (`/orchard/<side>/...`):
      odometry   nav_msgs/Odometry, every frame placed (frame odom_<side>, child the camera frame)
      path       nav_msgs/Path of the keyframes, as they are made (latched)
@@ -43,6 +45,7 @@ from std_msgs.msg import String
 
 from orchard_mapping.core.geometry import matrix_to_quat
 from orchard_mapping.core.sidemap import SideMap
+from orchard_mapping.core.sides import UTurnSides
 from orchard_mapping.errors import OrchardMappingError
 from orchard_mapping.io.bags import camera_intrinsics, decode_frame, header_ns
 from orchard_mapping.io.sidemap_codec import SIDE_MAP_ENCODING, encode_side_map
@@ -237,6 +240,8 @@ class RGBDOdometryNode(Node):
     def _track_loop(self) -> None:
         session: SideSession | None = None
         side = ""
+        source = self.params.config.input.side_source
+        turns: UTurnSides | None = None  # the side from the camera's U-turn (input.side_source)
         while True:
             kind, item = self._work.get()
             if kind == "stop":
@@ -245,14 +250,21 @@ class RGBDOdometryNode(Node):
                 self._finish.put(None)
                 return
             if kind == "side":
-                if item != side and session is not None:
+                if source == "trajectory" and item != SIDE_END:
+                    continue  # the drive's U-turn tells the side; `end` still ends it
+                if (item != side or turns is not None) and session is not None:
                     self._finish.put((session, time.monotonic()))
                     session = None
                 side = "" if item == SIDE_END else item
+                turns = None
                 continue
+            if turns is not None or source == "trajectory" or (source == "auto" and not (side or self._side)):
+                turns = turns or UTurnSides()
+                side = turns.side
             side = side or self._side
             if not side:
-                self._error("a frame came before any side was named (side topic or the `side` parameter)")
+                self._error("a frame came before any side was named (side topic or the `side` parameter; "
+                            "input.side_source: topic)")
                 continue
             colour, depth, info = item
             try:
@@ -271,6 +283,10 @@ class RGBDOdometryNode(Node):
                 continue
             self.counts.processed[side] = self.counts.processed.get(side, 0) + 1
             self._publish_pose(side, frame.stamp, pose, new)
+            if turns is not None and turns.update(pose):  # half way round the U-turn: the next side begins
+                self.get_logger().info(f"{side} side ends at {frame.stamp:.3f} s: the camera turned round the row end")
+                self._finish.put((session, time.monotonic()))
+                session = None
 
     def _new_session(self, side: str, colour: Image, info: CameraInfo | None) -> SideSession:
         if info is None:

@@ -23,9 +23,10 @@ from orchard_mapping.config import load_config
 from orchard_mapping.core.odometry import RGBDFrontEnd
 from orchard_mapping.errors import AlignmentError, BagError, BagFormatError
 from orchard_mapping.eval import evaluate_result
+from orchard_mapping.eval.ground_truth import load_ground_truth
 from orchard_mapping.eval.metrics import trajectory_error
 from orchard_mapping.io.bags import BagWriter, read_rgbd
-from orchard_mapping.io.results import read_tum
+from orchard_mapping.io.results import read_trees, read_tum
 from orchard_mapping.core.types import StampedTrajectory
 from orchard_mapping.core.geometry import matrix_to_quat
 from orchard_mapping.core.sidemap import SideMap
@@ -204,27 +205,29 @@ def test_hand_held_rows_within_goals_without_losses(hand_held, accuracy):
 
 
 @pytest.fixture(scope="module")
-def loop_run(tmp_path_factory, seed_offset) -> tuple[Path, dict]:
-    """The `loop` scenario (one bag, the side topic labels the frames) through `orchard-map run` and
-    `orchard-map evaluate --json`, as a user would run a single-bag recording."""
-    root = tmp_path_factory.mktemp("loop")
-    sim = _simulate(root, "loop", SEED + seed_offset)
-    out = root / "result"
-    # Each side on its own (merge.method=off): this row's merge is refused. On the front side the shipped
-    # detector takes the trellis post 0.47 m before tree 0 for a trunk and misses tree 0 (a 98 mm fit; the
-    # tree is 74 mm), so only one tree is seen from both sides: `run` says so and exits 2 (detector issue).
-    res = CliRunner().invoke(app, ["run", str(sim / "loop"), "--out", str(out), "--set", "merge.method=off"])
-    assert res.exit_code == 0, res.output
+def loop_run(loop_row) -> tuple[Path, dict, Path]:
+    """The `loop` scenario (one bag, one drive round the row) through `run` with the sides told by the
+    camera's U-turn (test/conftest.py), then `orchard-map evaluate --json`, as a user would."""
+    sim, out = loop_row
     res = CliRunner().invoke(app, ["evaluate", "--truth", str(sim / "ground_truth.json"), "--result", str(out),
                                    "--json"])
     assert res.exit_code == 0, res.output
-    return out, json.loads(res.output)
+    return out, json.loads(res.output), sim
 
 
 @pytest.mark.accuracy
 def test_single_bag_drive_reconstructs_both_sides_within_goals(loop_run, accuracy):
-    out, report = loop_run
+    out, report, sim = loop_run
     _assert_sides_within_goals(report, accuracy, "loop drive ")
+    # the sides as the camera's U-turn told them, against the simulator's labels (half of the turn each):
+    # each side's keyframes lie within its true span, give or take 0.3 s (a few frames of the turn)
+    truth = load_ground_truth(sim / "ground_truth.json")
+    for side in ("front", "back"):
+        kf, true = read_tum(out / f"trajectory_{side}.tum").stamps, truth.sides[side].trajectory.stamps
+        accuracy.at_most(f"{side} keyframes before its true span, s", max(float(true[0] - kf[0]), 0.0), 0.3)
+        accuracy.at_most(f"{side} keyframes after its true span, s", max(float(kf[-1] - true[-1]), 0.0), 0.3)
+    # with true masks both trees are seen from both sides: the merge is made
+    assert (out / "side_merge.json").is_file() and len(read_trees(out / "trees.json")) == 2
     for side in ("front", "back"):
         assert (out / f"{side}.ply").stat().st_size > 100_000
     timings = json.loads((out / "timings.json").read_text())

@@ -18,7 +18,7 @@ pytest.importorskip("rclpy")
 from orchard_mapping.cli.main import app  # noqa: E402
 from orchard_mapping.io.bags import iter_messages, iter_raw  # noqa: E402
 from orchard_mapping.io.landmarks import read_trunks  # noqa: E402
-from orchard_mapping.io.results import read_trees  # noqa: E402
+from orchard_mapping.io.results import read_trees, read_tum  # noqa: E402
 from orchard_mapping.resources import config_dir  # noqa: E402
 
 
@@ -64,6 +64,17 @@ def test_launched_graph_on_bags_gives_the_offline_trunks(standard_row, tmp_path)
         assert len(path.poses) > 20 and path.header.frame_id == f"odom_{side}"
 
     # the trees: published by the trait reporter, as the offline run wrote them
+    _same_trees(rec, out, offline)
+    merge = json.loads((out / "side_merge.json").read_text())
+    offline_merge = json.loads((offline / "side_merge.json").read_text())
+    assert merge["method"] == offline_merge["method"] == "semantic_ba"
+    markers = [m for _, m in iter_messages(rec, "/orchard/tree_markers")][-1]
+    assert len(markers.markers) == 1 + 2 * len(read_trees(offline / "trees.json"))  # DELETEALL, then a trunk and a label per tree
+
+
+def _same_trees(rec, out, offline) -> None:
+    """The trees the graph published (decoded from the recording) and wrote are the offline run's: same ids,
+    flags and per-side trunk ids, positions within 1 cm, diameters within 1 mm."""
     offline_trees = read_trees(offline / "trees.json")
     msgs = [m for _, m in iter_messages(rec, "/orchard/trees")]
     assert len(msgs) == 1 and msgs[0].header.frame_id == "map", len(msgs)
@@ -81,15 +92,35 @@ def test_launched_graph_on_bags_gives_the_offline_trunks(standard_row, tmp_path)
         for side in ("front", "back"):
             own = (t.per_side or {}).get(side)
             assert getattr(m, f"trunk_id_{side}") == (own["trunk_id"] if own else -1)
-    # and the files the graph wrote are the offline run's
     written = read_trees(out / "trees.json")
     assert [(w.id, w.flags) for w in written] == [(t.id, t.flags) for t in offline_trees]
     assert max(np.linalg.norm(np.subtract(w.position, t.position)) for w, t in zip(written, offline_trees)) < 0.01
-    merge = json.loads((out / "side_merge.json").read_text())
-    offline_merge = json.loads((offline / "side_merge.json").read_text())
-    assert merge["method"] == offline_merge["method"] == "semantic_ba"
-    markers = [m for _, m in iter_messages(rec, "/orchard/tree_markers")][-1]
-    assert len(markers.markers) == 1 + 2 * len(offline_trees)  # DELETEALL, then a trunk and a label per tree
+
+
+def test_one_drive_round_the_row_in_one_bag_gives_the_offline_trees(loop_row, tmp_path):
+    """`orchard-map launch --bag loop --drive`: one bag of a continuous drive round the row, its side topic
+    ignored (input.side_source=trajectory): the odometry node tells the sides by the camera's U-turn, as
+    `run` did on the same bag, and the graph publishes and writes the offline trees."""
+    sim, offline = loop_row
+    params = yaml.safe_load((config_dir() / "ros_params.yaml").read_text())
+    p = params["/**"]["ros__parameters"]
+    p["trunks"].update(source="masks", masks_dir=str(sim / "masks" / "loop"))
+    p["input"]["side_source"] = "trajectory"
+    (tmp_path / "params.yaml").write_text(yaml.safe_dump(params))
+    rec, out = tmp_path / "recorded", tmp_path / "out"
+    res = CliRunner().invoke(app, ["launch", "--bag", str(sim / "loop"), "--drive", "--record", str(rec),
+                                   "--params", str(tmp_path / "params.yaml"), "--out", str(out)])
+    assert res.exit_code == 0, res.output[-4000:]
+    status = [json.loads(m.data) for _, m in iter_messages(rec, "/orchard/odometry/status")][-1]
+    sent = sum(1 for _ in iter_raw(sim / "loop", ["/camera/color/image_raw"]))
+    assert status["colour"] == status["paired"] == sent and status["lost_vs_player"] == 0, status
+    assert status["finished"] == ["front", "back"] and not status["errors"], status
+    # the sides split where the offline run split them
+    for side in ("front", "back"):
+        path = [m for _, m in iter_messages(rec, f"/orchard/{side}/keyframes")][-1]
+        stamps = [ps.header.stamp.sec + 1e-9 * ps.header.stamp.nanosec for ps in path.poses]
+        assert np.allclose(stamps, read_tum(offline / f"trajectory_{side}.tum").stamps, atol=1e-6), side
+    _same_trees(rec, out, offline)
 
 
 def test_a_killed_trunk_detector_is_restarted_and_the_trunks_it_missed_are_flagged(standard_row, tmp_path):
