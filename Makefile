@@ -20,7 +20,7 @@ export VENV PYTHON
 # build are incremental, so a re-run only does what changed).
 SETUP_INPUTS := requirements.lock setup.py setup.cfg package.xml \
                 scripts/setup.sh cmake/fix_wheel_includes.cmake \
-                $(shell find orchard_mapping_msgs -type f 2>/dev/null)
+                $(shell find orchard_mapping_msgs vendor -type f 2>/dev/null)
 
 .PHONY: setup test test-portable demo bench fixtures clean train-setup
 

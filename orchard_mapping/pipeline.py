@@ -705,7 +705,7 @@ def two_side_trees(m: MergeOutcome, sides: dict[str, SideMap], cfg: OrchardConfi
                 flags.append("trunk_hidden_at_diameter_height")
         trees.append(ResultTree(len(trees), tuple(float(v) for v in pos), diameter, per_side={
             "front": {"trunk_id": i, "diameter_m": f.diameter_m},
-            "back": {"trunk_id": j, "diameter_m": b.diameter_m}}, flags=tuple(flags)))
+            "back": {"trunk_id": j, "diameter_m": b.diameter_m}}, flags=tuple(flags) + _carried_flags(f, b)))
     for side, T in (("front", np.eye(4)), ("back", T_fb)):
         for t in sides[side].trunks:
             if t.id in paired[side]:
@@ -713,8 +713,14 @@ def two_side_trees(m: MergeOutcome, sides: dict[str, SideMap], cfg: OrchardConfi
             pos = T[:3, :3] @ t.base + T[:3, 3]
             trees.append(ResultTree(len(trees), tuple(float(v) for v in pos), t.diameter_m,
                                     per_side={side: {"trunk_id": t.id, "diameter_m": t.diameter_m}},
-                                    flags=(f"seen_from_{side}_only",)))
+                                    flags=(f"seen_from_{side}_only",) + _carried_flags(t)))
     return trees
+
+
+def _carried_flags(*trunks: TrunkLandmark) -> tuple[str, ...]:
+    """The trunk flags a tree carries: the detector was down near it on some side (a tree there may be
+    missing, or seen from one side only because of it)."""
+    return (DETECTOR_UNAVAILABLE,) if any(DETECTOR_UNAVAILABLE in t.flags for t in trunks) else ()
 
 
 def merge_to_trees(sides: dict[str, SideMap], cfg: OrchardConfig

@@ -129,27 +129,39 @@ if [ "$(cat "$VENV/.editable-hash" 2>/dev/null)" != "$h" ] || [ ! -x "$VENV/bin/
   echo "$h" >"$VENV/.editable-hash"
 fi
 
-# --- 3. orchard_mapping_msgs into the venv prefix -------------------------------
+# --- 3. message packages into the venv prefix ------------------------------------
 # The ros-jazzy-* wheels install share/<pkg>/cmake, lib/ and include/ under the
 # venv root ($VENV), so $VENV is both the CMake prefix and the install prefix.
+# vendor/tf2_msgs: TFMessage for /tf and /tf_static (the tf2 packages are not on
+# PyPI); skipped where a tf2_msgs is already importable (a sourced ROS 2 install).
 CMAKE="$VENV/bin/cmake"                 # cmake from requirements.lock
-log "building orchard_mapping_msgs in $BUILD_DIR"
-mkdir -p "$BUILD_DIR"
 export AMENT_PREFIX_PATH="$VENV${AMENT_PREFIX_PATH:+:$AMENT_PREFIX_PATH}"
-quiet "$BUILD_DIR/configure.log" "$CMAKE" -S orchard_mapping_msgs -B "$BUILD_DIR" \
-  -DCMAKE_PREFIX_PATH="$VENV" \
-  -DCMAKE_INSTALL_PREFIX="$VENV" \
-  -DPython3_EXECUTABLE="$PY" \
-  -DBUILD_TESTING=OFF \
-  -DCMAKE_BUILD_TYPE=Release \
-  -DCMAKE_PROJECT_INCLUDE="$ROOT/cmake/fix_wheel_includes.cmake"
-quiet "$BUILD_DIR/build.log" "$CMAKE" --build "$BUILD_DIR" -j "$JOBS"
-quiet "$BUILD_DIR/install.log" "$CMAKE" --install "$BUILD_DIR"
+build_msgs() {
+  local src="$1" dir="$2"
+  log "building $(basename "$src") in $dir"
+  mkdir -p "$dir"
+  quiet "$dir/configure.log" "$CMAKE" -S "$src" -B "$dir" \
+    -DCMAKE_PREFIX_PATH="$VENV" \
+    -DCMAKE_INSTALL_PREFIX="$VENV" \
+    -DPython3_EXECUTABLE="$PY" \
+    -DBUILD_TESTING=OFF \
+    -DCMAKE_BUILD_TYPE=Release \
+    -DCMAKE_PROJECT_INCLUDE="$ROOT/cmake/fix_wheel_includes.cmake"
+  quiet "$dir/build.log" "$CMAKE" --build "$dir" -j "$JOBS"
+  quiet "$dir/install.log" "$CMAKE" --install "$dir"
+}
+if [ -f "$VENV/share/tf2_msgs/vendored-by-orchard-mapping" ] || \
+   ! "$PY" -c 'import tf2_msgs.msg' >/dev/null 2>&1; then
+  build_msgs vendor/tf2_msgs "$(dirname "$BUILD_DIR")/tf2_msgs"
+  touch "$VENV/share/tf2_msgs/vendored-by-orchard-mapping"
+fi
+build_msgs orchard_mapping_msgs "$BUILD_DIR"
 
 # --- 4. check ------------------------------------------------------------------
 ROS_AUTOMATIC_DISCOVERY_RANGE=LOCALHOST "$PY" - <<'EOF'
 import rclpy
 from orchard_mapping_msgs.msg import TrunkCylinder, TrunkCylinderArray  # noqa: F401
+from tf2_msgs.msg import TFMessage  # noqa: F401
 
 rclpy.init()
 try:

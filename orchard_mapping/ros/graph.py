@@ -48,7 +48,8 @@ def graph_specs(bags: list[Path], *, rate: float = 1.0, start_s: float = 0.0, lo
         odometry += ["-p", f"side:={side}"]
     specs = []
     if record is not None:
-        specs.append(NodeSpec("recorder", "recorder", (str(record),)))
+        specs.append(NodeSpec("recorder", "recorder", (str(record), "--prefix", "/orchard", "--prefix", "/tf",
+                                                       "--prefix", "/tf_static")))
     # a dead detector is started again also on bags: the odometry node flags what it could not see meanwhile
     specs.append(NodeSpec("trunk_detector", "trunk_detector", ros_args, restart=restart))
     if bags:

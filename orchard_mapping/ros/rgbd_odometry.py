@@ -19,6 +19,7 @@ Out, per side (`/orchard/<side>/...`):
      local_grounds    orchard_mapping_msgs/LocalGroundArray (latched)
      side_map   orchard_mapping_msgs/SideMap: the whole side map for the side merger (latched)
      status     std_msgs/String JSON: frames received, paired, processed, dropped (latched)
+and on /tf the camera frame in odom_<side>, every frame placed (the same pose as `odometry`).
 Frames are decoded in the subscription callback and queued (never dropped by the node; a frame DDS lost
 never reaches it, and is counted from the player's side, see benchmarks/live.py).
 """
@@ -58,6 +59,7 @@ from orchard_mapping.ros.player import SIDE_END, STATUS_TOPIC as PLAYER_STATUS
 from orchard_mapping.ros.qos import CAMERA, LATCHED
 from orchard_mapping.ros.remote_detector import RemoteDetector
 from orchard_mapping.ros.spin import StopNode, run_node
+from orchard_mapping.ros.tf import Transforms, transform_msg
 
 __all__ = ["RGBDOdometryNode", "main"]
 
@@ -113,6 +115,7 @@ class RGBDOdometryNode(Node):
         self.side_maps: dict[str, SideMap] = {}
         self.errors: list[str] = []
         self._status = self.create_publisher(String, "/orchard/odometry/status", LATCHED)
+        self._tf = Transforms(self)
         self.create_subscription(Image, topics.color, self._on_colour, CAMERA)
         self.create_subscription(Image, topics.depth, self._on_depth, CAMERA)
         self.create_subscription(CameraInfo, topics.camera_info, self._on_info, CAMERA)
@@ -313,6 +316,7 @@ class RGBDOdometryNode(Node):
         odom.child_frame_id = self.params.config.frames.camera
         _pose(odom.pose.pose, T)
         pubs["odometry"].publish(odom)
+        self._tf.send(transform_msg(T, frame_id, odom.child_frame_id, stamp))
         if keyframe:
             ps = PoseStamped()
             stamp_header(ps.header, stamp, frame_id)

@@ -14,6 +14,8 @@ Out (latched, frame `map` = odom_front):
      /orchard/merged/trees             TreeTraitsArray: the trees of the merge (position, two-side and
                                        per-side trunk diameters, flags) for the trait reporter
      /orchard/side_merger/status       std_msgs/String JSON: merges made, refusals and why, seconds
+     /tf_static                        map -> odom_front (identity) and map -> odom_back (the merge's rigid
+                                       transform), so RViz shows each side's odom frames in map
 With `out_dir` set, the merge's files (side_merge.json, both trajectories in map, merged.ply, row.png)
 are written there as `orchard-map run` writes them, each file atomically. A refused merge (too few trees
 seen from both sides, or pairs that disagree) is published in the status and logged; nothing is guessed.
@@ -55,6 +57,7 @@ from orchard_mapping.ros.messages import (
 from orchard_mapping.ros.params import ConfigParameters
 from orchard_mapping.ros.qos import LATCHED
 from orchard_mapping.ros.spin import StopNode, run_node
+from orchard_mapping.ros.tf import StaticTransforms, transform_msg
 
 __all__ = ["MERGED_TREES_TOPIC", "SideMergerNode", "main", "side_map_topic"]
 
@@ -86,6 +89,7 @@ class SideMergerNode(Node):
             "trees": self.create_publisher(TreeTraitsArray, MERGED_TREES_TOPIC, LATCHED),
             "status": self.create_publisher(String, "/orchard/side_merger/status", LATCHED),
         }
+        self._static_tf = StaticTransforms(self)
         for side in ("front", "back"):
             self.create_subscription(SideMapMsg, side_map_topic(side), lambda m, s=side: self._on_map(s, m), LATCHED)
         self.create_timer(0.2, self._check_done)
@@ -173,6 +177,12 @@ class SideMergerNode(Node):
         n = max(len(front.trunks), len(back.trunks))
         m.overlap = len(merged.pairs) / n if n else 0.0  # trees seen from both sides / from the side seeing more
         self._pubs["merge"].publish(m)
+        # map is the front side's odom frame; the back side's odom frame by the rigid part of the merge (a
+        # colour-only merge's scale is in SideMerge.scale: TF has none)
+        R = np.eye(4)
+        R[:3, :3], R[:3, 3] = T[:3, :3] / s, T[:3, 3]
+        self._static_tf.send(transform_msg(np.eye(4), MAP_FRAME, front.frame_id, stamp),
+                             transform_msg(R, MAP_FRAME, back.frame_id, stamp))
         self._pubs["cloud"].publish(cloud_to_msg(np.concatenate([clouds["front"], clouds["back"]]),
                                                  np.concatenate([front.cloud_colors, back.cloud_colors]),
                                                  MAP_FRAME, stamp))

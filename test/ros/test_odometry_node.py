@@ -20,6 +20,7 @@ from orchard_mapping.io.bags import iter_messages, iter_raw  # noqa: E402
 from orchard_mapping.io.landmarks import read_trunks  # noqa: E402
 from orchard_mapping.io.results import read_trees, read_tum  # noqa: E402
 from orchard_mapping.resources import config_dir  # noqa: E402
+from orchard_mapping.ros.tf import transform_of  # noqa: E402
 
 
 def _cylinders(bag, side: str):
@@ -68,8 +69,38 @@ def test_launched_graph_on_bags_gives_the_offline_trunks(standard_row, tmp_path)
     merge = json.loads((out / "side_merge.json").read_text())
     offline_merge = json.loads((offline / "side_merge.json").read_text())
     assert merge["method"] == offline_merge["method"] == "semantic_ba"
+    _same_tf(rec, np.array(offline_merge["T_front_back"]))
     markers = [m for _, m in iter_messages(rec, "/orchard/tree_markers")][-1]
     assert len(markers.markers) == 1 + 2 * len(read_trees(offline / "trees.json"))  # DELETEALL, then a trunk and a label per tree
+
+
+def _same_tf(rec, T_front_back: np.ndarray) -> None:
+    """/tf carries each side's camera in its odom frame, at the pose of the `odometry` message of the same
+    stamp; /tf_static puts odom_front at map and odom_back at the offline merge's transform (within 1 mm and
+    0.01 deg). (The recorder subscribes to a topic once it sees it: a volatile topic's first message or two
+    may come before that.)"""
+    def ns(h) -> int:
+        return h.stamp.sec * 1_000_000_000 + h.stamp.nanosec
+
+    tf = [t for _, m in iter_messages(rec, "/tf") for t in m.transforms]
+    for side in ("front", "back"):
+        odom = {ns(m.header): m for _, m in iter_messages(rec, f"/orchard/{side}/odometry")}
+        cam = [t for t in tf if t.header.frame_id == f"odom_{side}"]
+        assert len(cam) >= len(odom) - 2 and len(odom) > 20, (len(cam), len(odom))
+        assert {t.child_frame_id for t in cam} == {m.child_frame_id for m in odom.values()}
+        both = [(t, odom[ns(t.header)]) for t in cam if ns(t.header) in odom]
+        assert len(both) >= len(odom) - 4, (len(both), len(odom))
+        for t, m in both:
+            p, q = m.pose.pose.position, m.pose.pose.orientation
+            r = t.transform.rotation
+            assert np.abs(transform_of(t)[:3, 3] - [p.x, p.y, p.z]).max() < 1e-9
+            assert abs(abs(np.dot([r.x, r.y, r.z, r.w], [q.x, q.y, q.z, q.w])) - 1) < 1e-9
+    static = [m for _, m in iter_messages(rec, "/tf_static")][-1]
+    by_child = {t.child_frame_id: t for t in static.transforms}
+    assert set(by_child) == {"odom_front", "odom_back"} and {t.header.frame_id for t in static.transforms} == {"map"}
+    assert np.abs(transform_of(by_child["odom_front"]) - np.eye(4)).max() < 1e-12
+    D = np.linalg.inv(T_front_back) @ transform_of(by_child["odom_back"])
+    assert np.abs(D[:3, 3]).max() < 1e-3 and np.degrees(np.arccos(np.clip((np.trace(D[:3, :3]) - 1) / 2, -1, 1))) < 0.01
 
 
 def _same_trees(rec, out, offline) -> None:
@@ -125,8 +156,8 @@ def test_one_drive_round_the_row_in_one_bag_gives_the_offline_trees(loop_row, tm
 
 def test_a_killed_trunk_detector_is_restarted_and_the_trunks_it_missed_are_flagged(standard_row, tmp_path):
     """The trunk detector is killed (SIGKILL) after it answered 10 requests of the front side: the supervisor
-    reports it and starts it again, the run still ends with the side map, and the trunks near the keyframes
-    that went unanswered meanwhile carry the flag `detector_unavailable_nearby`."""
+    reports it and starts it again, the run still ends with the trees, and the trunks near the keyframes
+    that went unanswered meanwhile, and the trees they belong to, carry the flag `detector_unavailable_nearby`."""
     import os
     import signal
     import subprocess
@@ -137,9 +168,10 @@ def test_a_killed_trunk_detector_is_restarted_and_the_trunks_it_missed_are_flagg
     params = yaml.safe_load((config_dir() / "ros_params.yaml").read_text())
     params["/**"]["ros__parameters"]["trunks"].update(source="masks", masks_dir=str(sim / "masks"))
     (tmp_path / "params.yaml").write_text(yaml.safe_dump(params))
-    rec = tmp_path / "recorded"
+    rec, out = tmp_path / "recorded", tmp_path / "out"
     proc = subprocess.Popen([sys.executable, "-m", "orchard_mapping.cli.main", "launch", "--bag", str(sim / "front"),
-                             "--record", str(rec), "--params", str(tmp_path / "params.yaml")],
+                             "--bag", str(sim / "back"), "--record", str(rec), "--params", str(tmp_path / "params.yaml"),
+                             "--out", str(out)],
                             stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True)
     lines, killed = [], None
     try:
@@ -160,9 +192,13 @@ def test_a_killed_trunk_detector_is_restarted_and_the_trunks_it_missed_are_flagg
     assert rc == 0, text[-4000:]
     assert "trunk_detector died (exit code -9)" in text and "trunk_detector restarted" in text, text[-4000:]
     status = [json.loads(m.data) for _, m in iter_messages(rec, "/orchard/odometry/status")][-1]
-    assert status["finished"] == ["front"] and status["detector_unanswered"]["front"] > 0, status
+    assert status["finished"] == ["front", "back"] and status["detector_unanswered"]["front"] > 0, status
     msg = [m for _, m in iter_messages(rec, "/orchard/front/trunk_cylinders")][-1]
-    assert msg.cylinders and any("detector_unavailable_nearby" in c.flags for c in msg.cylinders), msg.cylinders
+    flagged = {c.tree_id for c in msg.cylinders if "detector_unavailable_nearby" in c.flags}
+    assert flagged, msg.cylinders
+    trees = read_trees(out / "trees.json")
+    assert {t.per_side["front"]["trunk_id"] for t in trees
+            if "detector_unavailable_nearby" in t.flags and "front" in (t.per_side or {})} == flagged, trees
 
 
 def _cmdline(p) -> bytes:
