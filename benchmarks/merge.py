@@ -9,7 +9,7 @@ rigid alignment) and the trunk diameter MAE of the trees.
 
 Usage:
   python benchmarks/merge.py [--scenarios standard slope_weeds] [--trees 10] [--rate 15] [--seed 0]
-        [--workdir /tmp/merge_bench] [--reuse] [--json out.json] [--tile 3 10]
+        [--workdir /tmp/merge_bench] [--reuse] [--json out.json] [--tile 3 10] [--masks]
 
 Long rows: --tile K also merges the reconstructed sides repeated K times along the row (a 100-tree
 row from a 10-tree one: --trees 10 --tile 10), timed the same way; a simulated 30-tree row takes about
@@ -47,13 +47,14 @@ from orchard_mapping.sim.simulate import simulate  # noqa: E402
 METHODS = ("semantic_ba", "initial", "icp")
 
 
-def _sides(sim_dir: Path, reuse: bool) -> dict[str, Any]:
-    """Both sides reconstructed with their trunks; kept in sides.pkl beside the simulation for --reuse."""
-    cache = sim_dir.parent / "sides.pkl"
+def _sides(sim_dir: Path, reuse: bool, masks: bool = False) -> dict[str, Any]:
+    """Both sides reconstructed with their trunks (from the shipped detector, or with `masks` the simulator's
+    exact instance masks); kept in sides.pkl (sides_masks.pkl) beside the simulation for --reuse."""
+    cache = sim_dir.parent / ("sides_masks.pkl" if masks else "sides.pkl")
     if reuse and cache.is_file():
         with cache.open("rb") as f:
             return pickle.load(f)
-    cfg = load_config()
+    cfg = load_config(overrides={"trunks": {"source": "masks", "masks_dir": str(sim_dir / "masks")}} if masks else None)
     seqs = open_sides(sim_dir / "front", sim_dir / "back", cfg)
     sides = {side: reconstruct_side(seq, side, cfg, Timings()) for side, seq in seqs.items()}
     tmp = cache.with_suffix(".partial")
@@ -191,6 +192,8 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--reuse", action="store_true",
                     help="skip simulating (and reconstructing: sides.pkl) when the case folder holds them")
     ap.add_argument("--json", type=Path)
+    ap.add_argument("--masks", action="store_true",
+                    help="trunks from the simulator's exact instance masks instead of the shipped detector")
     ap.add_argument("--tile", type=int, nargs="*", default=[],
                     help="also merge the reconstructed sides repeated K times along the row (long rows without "
                          "rendering them: time and memory), e.g. --tile 3 10")
@@ -203,7 +206,7 @@ def main(argv: list[str] | None = None) -> int:
             simulate(load_scenario(sc, {"row.n_trees": args.trees, "camera.rate_hz": args.rate}), args.seed, sim_dir,
                      force=True)
         gt = load_ground_truth(sim_dir / "ground_truth.json")
-        sides = _sides(sim_dir, args.reuse)
+        sides = _sides(sim_dir, args.reuse, args.masks)
         for copies in [1, *args.tile]:
             s_k, gt_k = (sides, gt) if copies == 1 else _tiled(sides, gt, copies)
             for method in METHODS if copies == 1 else args.tile_methods:

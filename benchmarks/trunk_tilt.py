@@ -10,7 +10,8 @@ through circles fitted to 8 cm slices of the fused trunk points; and each local 
 Positive: leaning away from the camera. Prints the per-tree values and the medians.
 
 Usage:
-  python benchmarks/trunk_tilt.py CASE_DIR   (a benchmarks/merge.py case folder: sim/ and sides.pkl)
+  python benchmarks/trunk_tilt.py CASE_DIR [--sides sides_masks.pkl]   (a benchmarks/merge.py case folder:
+      sim/ and sides.pkl)
 """
 
 from __future__ import annotations
@@ -69,8 +70,10 @@ def _slice_axis(lm, cloud: np.ndarray) -> np.ndarray | None:
 def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     ap.add_argument("case", type=Path)
+    ap.add_argument("--sides", default="sides.pkl", help="the sides file in the case folder (sides_masks.pkl: "
+                                                         "trunks from the simulator's masks, merge.py --masks)")
     args = ap.parse_args()
-    with (args.case / "sides.pkl").open("rb") as f:
+    with (args.case / args.sides).open("rb") as f:
         sides = pickle.load(f)
     gt = load_ground_truth(args.case / "sim" / "ground_truth.json")
     bases = np.array([t.trunk_base for t in gt.trees])

@@ -245,6 +245,9 @@ def _select_by_masks(points: np.ndarray, views: list[tuple[TrunkView, Detection]
 # (canopy) on an axis tilted 15 deg off the row's normal plane
 _SLAB_MARGIN_M = 1.5
 
+# m above the ground: the merge axis is fitted above the trunk's foot
+FOOT_CLEARANCE_M = 0.10
+
 # depth pixels kept per trunk detection for the merge axis: a few thousand per frame, tens of frames per trunk
 _VIEW_POINTS_PER_DETECTION = 3000
 
@@ -382,12 +385,6 @@ def _model_trunk(lm_id: int, obs: list[tuple[TrunkView, Detection]], places: np.
     except CylinderError:
         return None
     axis = coarse.cylinder.axis
-    # The merge axis from the detections' own depth pixels, not the fused cloud: a TSDF surface of a thin
-    # trunk is displaced by an amount that grows as the trunk narrows upwards, which leans the fused trunk
-    # towards the camera (with true poses and noise-free depth on the standard row: 0.16 deg median at the
-    # 4 cm truncation, 2.1 deg at 8 cm; the depth pixels themselves: under 0.08 deg).
-    cone, taper = refine_cone_axis(view_points, coarse.cylinder, threshold_m=2 * params.ransac_threshold_m,
-                                   sigma_m=params.sigma_3d_m, huber_k=params.huber_k)
     on_trunk = np.abs(point_distance(trunk, coarse.cylinder)) < 2 * params.ransac_threshold_m
     h_axis = trunk @ axis
     h_bottom = float(np.percentile(h_axis[on_trunk], 1)) if on_trunk.any() else float(h_axis.min())
@@ -407,6 +404,15 @@ def _model_trunk(lm_id: int, obs: list[tuple[TrunkView, Detection]], places: np.
             # the foot on the wider ground rather than the lowest trunk point seen: grass or weeds may hide
             # the foot (the 10-tree standard row: one tree's lowest point 20 cm up its trunk)
             base = height_ground.point
+    # The merge axis from the detections' own depth pixels, not the fused cloud: a TSDF surface of a thin
+    # trunk is displaced by an amount that grows as the trunk narrows upwards, which leans the fused trunk
+    # towards the camera (with true poses and noise-free depth on the standard row: 0.16 deg median at the
+    # 4 cm truncation, 2.1 deg at 8 cm; the depth pixels themselves: under 0.08 deg). The foot is left out:
+    # a mask that bleeds onto the ground there widens the trunk's bottom, which a cone takes for taper.
+    above = (height_ground.height_of(view_points) if height_ground is not None
+             else view_points @ axis - h_bottom) > FOOT_CLEARANCE_M
+    cone, taper = refine_cone_axis(view_points[above], coarse.cylinder, threshold_m=2 * params.ransac_threshold_m,
+                                   sigma_m=params.sigma_3d_m, huber_k=params.huber_k)
     # Without any ground the diameter height is unknown: no diameter rather than one at a guessed height.
     band_h = np.full(len(trunk), np.nan) if height_ground is None else height_ground.height_of(trunk)
     in_band = (band_h >= h_lo) & (band_h <= h_hi)
