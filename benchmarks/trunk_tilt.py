@@ -53,9 +53,15 @@ def _slice_axis(lm, cloud: np.ndarray) -> np.ndarray | None:
     h = rel @ a
     r0 = lm.diameter_m / 2 if lm.diameter_m else 0.05
     near = (h > 0.1) & (h < lm.length_m - 0.05) & (np.abs(np.linalg.norm(rel - h[:, None] * a, axis=1) - r0) < 0.02)
-    Q, hq = rel[near], h[near]
+    return slice_centre_line(rel[near], h[near], a, e1, e2, 0.1, lm.length_m - 0.05)
+
+
+def slice_centre_line(Q: np.ndarray, hq: np.ndarray, a: np.ndarray, e1: np.ndarray, e2: np.ndarray, h_lo: float,
+                      h_hi: float) -> np.ndarray | None:
+    """(3,) unit line through the centres of circles fitted to SLICE_M slices (h_lo..h_hi along a) of trunk
+    points Q (N, 3) relative to a point on the axis, hq (N,) their heights along a; e1, e2 across a."""
     centres = []
-    for h0 in np.arange(0.1, lm.length_m - 0.05, SLICE_M):
+    for h0 in np.arange(h_lo, h_hi, SLICE_M):
         m = (hq >= h0) & (hq < h0 + SLICE_M)
         if m.sum() >= MIN_SLICE_POINTS:
             cx, cy, _ = _circle(np.c_[Q[m] @ e1, Q[m] @ e2])

@@ -20,25 +20,15 @@ import argparse
 import numpy as np
 from rich.console import Console
 from rich.table import Table
-from scipy.optimize import least_squares
 
 from orchard_mapping.core.fusion import TsdfFusion
 from orchard_mapping.sim.scenario import load_scenario
 from orchard_mapping.sim.scene import Cls
 from orchard_mapping.sim.simulate import Rig
 from orchard_mapping.sim.truth import trunk_axis_at_height
+from trunk_tilt import slice_centre_line  # the script's own folder is on sys.path
 
-SLICE_M = 0.08  # m of trunk per circle
 VOXEL_M = 0.01  # m, the default fusion.voxel_size_m
-
-
-def _circle(xy: np.ndarray) -> np.ndarray:
-    """(cx, cy, r): algebraic circle fit, then Huber LM."""
-    A = np.c_[2 * xy, np.ones(len(xy))]
-    c = np.linalg.lstsq(A, (xy ** 2).sum(1), rcond=None)[0]
-    r0 = np.sqrt(max(c[2] + c[:2] @ c[:2], 1e-6))
-    return least_squares(lambda p: np.linalg.norm(xy - p[:2], axis=1) - p[2], np.r_[c[:2], r0], loss="huber",
-                         f_scale=0.003).x
 
 
 def _true_axis(tree) -> tuple[np.ndarray, np.ndarray]:
@@ -57,17 +47,7 @@ def _slice_axis(P: np.ndarray, tree) -> np.ndarray | None:
     e1 = np.cross(a, [1.0, 0.0, 0.0])
     e1 /= np.linalg.norm(e1)
     e2 = np.cross(a, e1)
-    centres = []
-    for h0 in np.arange(0.1, tree.clear_height - 0.1, SLICE_M):
-        m = (h >= h0) & (h < h0 + SLICE_M)
-        if m.sum() > 40:
-            cx, cy, _ = _circle(np.c_[rel[m] @ e1, rel[m] @ e2])
-            centres.append(cx * e1 + cy * e2 + (h0 + SLICE_M / 2) * a)
-    if len(centres) < 3:
-        return None
-    C = np.array(centres)
-    ax = np.linalg.svd(C - C.mean(0))[2][0]
-    return ax if ax @ a > 0 else -ax
+    return slice_centre_line(rel, h, a, e1, e2, 0.1, tree.clear_height - 0.1)
 
 
 def main() -> None:
