@@ -16,7 +16,7 @@ from rclpy.node import Node
 from rclpy.qos import DurabilityPolicy, HistoryPolicy, QoSProfile, ReliabilityPolicy
 from tf2_msgs.msg import TFMessage
 
-from orchard_mapping.core.geometry import matrix_to_quat
+from orchard_mapping.core.geometry import matrix_to_quat, quat_to_matrix
 from orchard_mapping.ros.messages import stamp_header
 
 __all__ = ["TF_STATIC_TOPIC", "TF_TOPIC", "StaticTransforms", "Transforms", "transform_msg", "transform_of"]
@@ -45,11 +45,9 @@ def transform_msg(T_parent_child: np.ndarray, parent: str, child: str, stamp: fl
 
 def transform_of(msg: TransformStamped) -> np.ndarray:
     """(4, 4) T_parent_child of a TransformStamped (rclpy's or a decoded bag message)."""
-    from scipy.spatial.transform import Rotation
-
     r, t = msg.transform.rotation, msg.transform.translation
     T = np.eye(4)
-    T[:3, :3] = Rotation.from_quat([r.x, r.y, r.z, r.w]).as_matrix()
+    T[:3, :3] = quat_to_matrix(np.array([r.x, r.y, r.z, r.w]))
     T[:3, 3] = (t.x, t.y, t.z)
     return T
 
