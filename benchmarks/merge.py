@@ -36,6 +36,7 @@ from rich.table import Table  # noqa: E402
 
 from orchard_mapping.config import load_config  # noqa: E402
 from orchard_mapping.core.geometry import transform_points  # noqa: E402
+from orchard_mapping.eval.evaluate import trunk_scene_points  # noqa: E402
 from orchard_mapping.eval.ground_truth import load_ground_truth  # noqa: E402
 from orchard_mapping.core.geometry import matrix_to_quat  # noqa: E402
 from orchard_mapping.core.types import StampedTrajectory  # noqa: E402
@@ -153,7 +154,8 @@ def _score(method: str, sides: dict[str, Any], gt: Any) -> dict[str, Any]:
               for side, P in map_poses(m, sides).items()}
     mm = map_merge_error(in_map["front"], in_map["back"], gt.sides["front"].trajectory, gt.sides["back"].trajectory,
                          gt.sides["front"].T_world_odom, gt.sides["back"].T_world_odom,
-                         np.array([t.trunk_base for t in gt.trees]).reshape(-1, 3))
+                         np.array([t.trunk_base for t in gt.trees]).reshape(-1, 3),
+                         scene_points=trunk_scene_points(gt))
     T_front_world = np.linalg.inv(gt.sides["front"].T_world_odom)
     true_xyz = transform_points(T_front_world, np.array([t.position for t in gt.trees]).reshape(-1, 3))
     est = np.array([t.position for t in trees], float).reshape(-1, 3)

@@ -28,6 +28,7 @@ from scipy.optimize import least_squares
 from orchard_mapping.core.cylinder import _basis
 from orchard_mapping.core.geometry import matrix_to_quat
 from orchard_mapping.core.types import StampedTrajectory
+from orchard_mapping.eval.evaluate import trunk_scene_points
 from orchard_mapping.eval.ground_truth import load_ground_truth
 from orchard_mapping.eval.metrics import fit_map_to_world
 
@@ -86,7 +87,8 @@ def main() -> None:
     console = Console(width=160)
     for side, sm in sides.items():
         tr = StampedTrajectory(sm.keyframe_stamps, sm.keyframe_poses[:, :3, 3], matrix_to_quat(sm.keyframe_poses[:, :3, :3]))
-        A = fit_map_to_world(tr, gt.sides[side].trajectory, gt.sides[side].T_world_odom, 0.005)
+        A = fit_map_to_world(tr, gt.sides[side].trajectory, gt.sides[side].T_world_odom, 0.005,
+                             trunk_scene_points(gt))
         view = gt.sides[side].T_world_odom[:3, :3] @ sm.keyframe_poses[:, :3, 2].mean(0)
         view[2] = 0.0
         view /= np.linalg.norm(view)  # the camera's horizontal viewing direction, world

@@ -51,7 +51,7 @@ from orchard_mapping.io.results import (
     trajectory_filename,
 )
 
-__all__ = ["evaluate_result"]
+__all__ = ["evaluate_result", "trunk_scene_points"]
 
 
 CONFIG_EFFECTIVE = "config.effective.yaml"
@@ -99,6 +99,11 @@ def _trunk_axis_gaps_mm(result_dir: Path, sm, trunks, height_m: float) -> dict[s
     if not gaps:
         return None
     return {"median": float(np.median(gaps)), "max": float(np.max(gaps)), "n": len(gaps)}
+
+
+def trunk_scene_points(gt: GroundTruth) -> np.ndarray:
+    """(2T, 3) world: the true trunk bases and tops, what the merged map's error fits each side on."""
+    return np.array([p for t in gt.trees for p in (t.trunk_base, t.trunk_top)], float).reshape(-1, 3)
 
 
 def _rgb_only(result_dir: Path) -> bool:
@@ -280,7 +285,8 @@ def evaluate_result(
             try:
                 merge_map = map_merge_error(read_tum(maps[0]), read_tum(maps[1]), gt.sides["front"].trajectory,
                                             gt.sides["back"].trajectory, gt.sides["front"].T_world_odom,
-                                            gt.sides["back"].T_world_odom, world_bases, trajectory_max_dt_s)
+                                            gt.sides["back"].T_world_odom, world_bases, trajectory_max_dt_s,
+                                            scene_points=trunk_scene_points(gt))
             except AlignmentError as err:
                 skipped["merge.map"] = str(err)
         else:

@@ -145,9 +145,12 @@ def merge_error(T_est: np.ndarray, T_true: np.ndarray, points_back: np.ndarray) 
     )
 
 
-# m: each keyframe joins the fit as its centre and the points this far along its camera axes. A side's
-# keyframe centres lie nearly on one line (the row), which leaves the roll about it free.
+# m: without scene points, each keyframe joins the fit as its centre and the points this far along its camera
+# axes. A side's keyframe centres lie nearly on one line (the row), which leaves the roll about it free.
 _AXIS_POINT_M = 1.0
+# m: a scene point joins a keyframe's part of the fit when it lies in front of the camera and this close: the
+# range of the fused depth (fusion.depth_max_m, 3 m by default) and a margin.
+SCENE_VIEW_RANGE_M = 4.0
 
 
 def _pose_points(T: np.ndarray) -> np.ndarray:
@@ -156,9 +159,23 @@ def _pose_points(T: np.ndarray) -> np.ndarray:
     return np.concatenate([c] + [c + _AXIS_POINT_M * T[:, :3, a] for a in range(3)])
 
 
+def _seen_points(T_est: np.ndarray, T_true: np.ndarray, scene: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """(placed (M, 3), true (M, 3)): every scene point (S, 3) world that a keyframe sees (in front of its true
+    camera within SCENE_VIEW_RANGE_M), where the keyframe's estimated pose (K, 4, 4) map puts it, and where
+    it is. A keyframe misplaces what it sees by its position error plus its orientation error times the
+    distance: these pairs weigh the two as the map does."""
+    local = np.einsum("kji,ksj->ksi", T_true[:, :3, :3], scene[None] - T_true[:, None, :3, 3])  # (K, S, 3) cam
+    seen = (local[..., 2] > 0.1) & (np.linalg.norm(local, axis=2) < SCENE_VIEW_RANGE_M)  # (K, S)
+    placed = np.einsum("kij,ksj->ksi", T_est[:, :3, :3], local) + T_est[:, None, :3, 3]  # (K, S, 3) map
+    return placed[seen], np.broadcast_to(scene, local.shape)[seen]
+
+
 def fit_map_to_world(est: StampedTrajectory, true: StampedTrajectory, T_world_odom: np.ndarray,
-                      max_dt_s: float) -> np.ndarray:
-    """(4, 4) the rigid map -> world transform that best fits a side's keyframes in map to its true poses."""
+                     max_dt_s: float, scene_points: np.ndarray | None = None) -> np.ndarray:
+    """(4, 4) the rigid map -> world transform that best fits a side's map to the truth: with scene_points
+    (S, 3) world, what each keyframe sees of them placed by its estimated pose against where they are (the
+    map's own content; _seen_points); without them, or when fewer than 3 are seen, the keyframes' poses
+    (centres and axis points)."""
     order_t = np.argsort(true.stamps, kind="stable")
     order_e = np.argsort(est.stamps, kind="stable")
     i_s, j_s = associate_stamps(np.asarray(est.stamps)[order_e], np.asarray(true.stamps)[order_t], max_dt_s)
@@ -168,20 +185,26 @@ def fit_map_to_world(est: StampedTrajectory, true: StampedTrajectory, T_world_od
                              "by stamp; the merged map's error needs 2")
     T_est = pose_matrices(np.asarray(est.positions)[i], np.asarray(est.quaternions)[i])  # (n, 4, 4) map
     T_true = T_world_odom @ pose_matrices(np.asarray(true.positions)[j], np.asarray(true.quaternions)[j])  # world
+    if scene_points is not None:
+        placed, where = _seen_points(T_est, T_true, np.asarray(scene_points, float).reshape(-1, 3))
+        if len(placed) >= 3:
+            return umeyama(placed, where).matrix()
     return umeyama(_pose_points(T_est), _pose_points(T_true)).matrix()
 
 
 def map_merge_error(front_map: StampedTrajectory, back_map: StampedTrajectory, front_true: StampedTrajectory,
                     back_true: StampedTrajectory, T_world_front: np.ndarray, T_world_back: np.ndarray,
-                    points_world: np.ndarray, max_dt_s: float = 0.005) -> MergeError:
+                    points_world: np.ndarray, max_dt_s: float = 0.005,
+                    scene_points: np.ndarray | None = None) -> MergeError:
     """Where the merged map puts the back side against where it puts the front side, each side's own
-    drift left out (docs/results.md): each side's keyframes in map are fitted to its true poses in world
-    by one rigid transform, A_front and A_back. A perfect merge of two drifted sides has A_front = A_back
-    (both sides bent alike); the back side is misplaced by D = A_front A_back^-1. Rotation: the angle of D;
-    translation: |D p - p| over points_world (P, 3) m (the true trunk bases). The true poses of each side
-    are in its odom frame, T_world_<side> (4, 4) places them in world."""
-    A_f = fit_map_to_world(front_map, front_true, T_world_front, max_dt_s)
-    A_b = fit_map_to_world(back_map, back_true, T_world_back, max_dt_s)
+    drift left out (docs/results.md): each side's map is fitted to the truth by one rigid transform,
+    A_front and A_back (fit_map_to_world, on the scene_points (S, 3) world its keyframes see: the true
+    trunk bases and tops). A perfect merge of two drifted sides has A_front = A_back (both sides bent
+    alike); the back side is misplaced by D = A_front A_back^-1. Rotation: the angle of D; translation:
+    |D p - p| over points_world (P, 3) m (the true trunk bases). The true poses of each side are in its
+    odom frame, T_world_<side> (4, 4) places them in world."""
+    A_f = fit_map_to_world(front_map, front_true, T_world_front, max_dt_s, scene_points)
+    A_b = fit_map_to_world(back_map, back_true, T_world_back, max_dt_s, scene_points)
     D = A_f @ np.linalg.inv(A_b)
     pts = np.asarray(points_world, dtype=float).reshape(-1, 3)
     if pts.shape[0] == 0:
