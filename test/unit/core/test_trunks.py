@@ -128,3 +128,25 @@ def test_the_merge_axis_comes_from_the_depth_pixels_not_a_leaning_fused_trunk():
 
     assert towards_camera_deg(lm.axis) > 0.3  # the fused trunk's own fit follows its lean
     assert abs(towards_camera_deg(lm.merge_axis)) < 0.1
+
+
+def test_the_foot_lies_on_the_merge_axis_not_on_a_leaning_fused_trunk():
+    """The merge's trunk line is the foot plus the merge axis. A fused trunk that leans about its middle
+    (a plain cylinder on a tapered trunk does, away from the camera) puts its own axis off the true one at
+    the ground: the foot must come from the depth pixels' axis, or the two sides' lines part at the ground
+    (docs/merge.md: 8 mm in depth on the 10-tree standard row)."""
+    points, poses, views = _side()
+    h = GROUND_Y - points[:, 1]
+    on_trunk = (np.hypot(points[:, 0] - TRUNK[0], points[:, 2] - TRUNK[2]) < RADIUS + 0.01) & (h > 0)
+    leaning = points.copy()
+    leaning[on_trunk, 2] += np.tan(np.radians(0.8)) * (h[on_trunk] - 0.35)  # the top away from the camera (+z)
+    lm = build_trunk_landmarks(leaning, poses, views, INTR, TrunkParams(), GroundParams(),
+                               np.random.default_rng(0))[0]
+
+    def off_axis_mm(p: np.ndarray) -> float:  # horizontal distance from the true axis (x, z), mm
+        return 1000 * float(np.hypot(p[0] - TRUNK[0], p[2] - TRUNK[2]))
+
+    assert lm.ground is not None
+    assert off_axis_mm(lm.ground.point) > 4.0  # where the fused trunk's own axis meets the ground
+    assert off_axis_mm(lm.base) < 1.5
+    assert abs(lm.base[1] - GROUND_Y) < 0.005
