@@ -5,7 +5,8 @@ default configuration: trunks from the shipped detector), then merge them with e
 (semantic_ba, initial, icp) and print one table: time per step, trunk pairs, the gap between the two
 sides' trunk axes at the diameter height (median / max), the rigid merge error against the truth at
 the trunk bases (rotation, mean translation), tree positions in map (mean distance, RMSE after one
-rigid alignment) and the trunk diameter MAE of the trees.
+rigid alignment) and the trunk diameter MAE of the trees; on the trees both sides measured, the two-side
+diameter's MAE beside each side's own.
 
 Usage:
   python benchmarks/merge.py [--scenarios standard slope_weeds] [--trees 10] [--rate 15] [--seed 0]
@@ -165,6 +166,12 @@ def _score(method: str, sides: dict[str, Any], gt: Any) -> dict[str, Any]:
     rmse = rigid_rmse_mm(est[ok], true_xyz[near[ok]])
     d_err = [1000 * (t.trunk_diameter_m - gt.trees[k].diameter_m) for t, k, o in zip(trees, near, ok)
              if o and t.trunk_diameter_m is not None]
+    # The two-side diameter against each side's own, on the trees both sides measured (mm, MAE)
+    both = [(t, k) for t, k, o in zip(trees, near, ok) if o and t.trunk_diameter_m is not None and t.per_side
+            and all((t.per_side.get(sd) or {}).get("diameter_m") is not None for sd in ("front", "back"))]
+
+    def mae(get: Any) -> float | None:
+        return float(np.mean([abs(1000 * (get(t) - gt.trees[k].diameter_m)) for t, k in both])) if both else None
     gaps = m.sba.gaps_after_mm if m.sba is not None else None
     return {
         "method": method, "seconds": seconds, "steps": m.seconds, "pairs": len(m.pairs),
@@ -177,6 +184,10 @@ def _score(method: str, sides: dict[str, Any], gt: Any) -> dict[str, Any]:
         "tree_distance_mean_mm": float(1000 * dist[ok].mean()) if ok.any() else None,
         "tree_position_rmse_mm": rmse,
         "diameter_mae_mm": float(np.mean(np.abs(d_err))) if d_err else None,
+        "diameter_both_sides_n": len(both),
+        "diameter_both_sides_mae_mm": {"two_side": mae(lambda t: t.trunk_diameter_m),
+                                       "front": mae(lambda t: t.per_side["front"]["diameter_m"]),
+                                       "back": mae(lambda t: t.per_side["back"]["diameter_m"])},
     }
 
 
@@ -217,7 +228,7 @@ def main(argv: list[str] | None = None) -> int:
                 print(json.dumps(rows[-1]), file=sys.stderr)
     tab = Table(title=f"two-side merge, {args.trees} trees (x K: tiled), {args.rate:g} Hz, seed {args.seed} (same sides for every method)")
     for col in ("scenario", "method", "s", "align / init / SBA s", "pairs", "axis gap mm med/max", "rot err deg", "transl err mm", "map rot deg", "map transl mm",
-                "trees matched", "tree dist mm", "tree RMSE mm", "diam MAE mm"):
+                "trees matched", "tree dist mm", "tree RMSE mm", "diam MAE mm", "diam MAE both sides: 2-side/front/back (n)"):
         tab.add_column(col, justify="right")
     for r in rows:
         st = r["steps"]
@@ -226,7 +237,9 @@ def main(argv: list[str] | None = None) -> int:
                     f"{_f(r['gap_median_mm'], 1)}/{_f(r['gap_max_mm'], 1)}", _f(r["rotation_error_deg"], 3),
                     _f(r["translation_error_mm"], 1), _f(r.get("map_rotation_error_deg"), 3),
                     _f(r.get("map_translation_error_mm"), 1), f"{r['trees_matched']}/{r['trees']}",
-                    _f(r["tree_distance_mean_mm"], 1), _f(r["tree_position_rmse_mm"], 1), _f(r["diameter_mae_mm"]))
+                    _f(r["tree_distance_mean_mm"], 1), _f(r["tree_position_rmse_mm"], 1), _f(r["diameter_mae_mm"]),
+                    "/".join(_f(r["diameter_both_sides_mae_mm"][k]) for k in ("two_side", "front", "back"))
+                    + f" ({r['diameter_both_sides_n']})")
     Console(width=200).print(tab)
     if args.json:
         args.json.parent.mkdir(parents=True, exist_ok=True)
