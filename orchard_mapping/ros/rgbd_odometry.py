@@ -56,7 +56,7 @@ from orchard_mapping.ros.finisher import SideFinishError, finish_in_child
 from orchard_mapping.ros.messages import TrunkRecord, ground_records, grounds_to_msg, stamp_header, trunks_to_msg
 from orchard_mapping.ros.params import ConfigParameters
 from orchard_mapping.ros.player import SIDE_END, STATUS_TOPIC as PLAYER_STATUS
-from orchard_mapping.ros.qos import CAMERA, LATCHED
+from orchard_mapping.ros.qos import CAMERA, CAMERA_REPLAYED, LATCHED
 from orchard_mapping.ros.remote_detector import RemoteDetector
 from orchard_mapping.ros.spin import StopNode, run_node
 from orchard_mapping.ros.tf import Transforms, transform_msg
@@ -96,6 +96,8 @@ class RGBDOdometryNode(Node):
         self.declare_parameter("spool_dir", "")  # where keyframe images wait for fusion ("": the system's temp)
         # replaying bags: exit (code 0) once this many side maps are published (0: run until stopped)
         self.declare_parameter("exit_after_sides", 0)
+        # the camera topics come from the project's bag player: read them reliably (ros/qos.py)
+        self.declare_parameter("replayed_camera", False)
         # "node": the trunk_detector node answers (the graph); "local": the configured detector in this process
         self.declare_parameter("detector", "local")
         self._detectors: dict[str, RemoteDetector] = {}
@@ -116,9 +118,10 @@ class RGBDOdometryNode(Node):
         self.errors: list[str] = []
         self._status = self.create_publisher(String, "/orchard/odometry/status", LATCHED)
         self._tf = Transforms(self)
-        self.create_subscription(Image, topics.color, self._on_colour, CAMERA)
-        self.create_subscription(Image, topics.depth, self._on_depth, CAMERA)
-        self.create_subscription(CameraInfo, topics.camera_info, self._on_info, CAMERA)
+        camera = CAMERA_REPLAYED if self.get_parameter("replayed_camera").value else CAMERA
+        self.create_subscription(Image, topics.color, self._on_colour, camera)
+        self.create_subscription(Image, topics.depth, self._on_depth, camera)
+        self.create_subscription(CameraInfo, topics.camera_info, self._on_info, camera)
         self.create_subscription(String, topics.side, self._on_side, LATCHED)
         self.create_subscription(String, PLAYER_STATUS, self._on_player, LATCHED)
         self._threads = [threading.Thread(target=self._track_loop, daemon=True),
