@@ -181,16 +181,6 @@ BAND_AGREEMENT_M = 0.010  # m: see _model_trunk, the foot below the band
 TRUNK_SURFACE_M = 0.02  # m, points this close to a trunk's coarse cylinder are its surface, not ground
 
 
-def _line_plane_point(origin: np.ndarray, direction: np.ndarray, normal: np.ndarray, offset: float,
-                      fallback: np.ndarray) -> np.ndarray:
-    """(3,) where the line origin + s direction meets the plane normal . p + offset = 0; `fallback` when the
-    line runs (nearly) along the plane."""
-    den = float(normal @ direction)
-    if abs(den) < 1e-3:
-        return fallback
-    return origin - (float(normal @ origin) + offset) / den * direction
-
-
 def _backproject(depth: np.ndarray, mask: np.ndarray, intr: CameraIntrinsics, T_odom_cam: np.ndarray) -> np.ndarray:
     """(M, 3) odom points of the mask's pixels with depth (row-major pixel order)."""
     v, u = np.nonzero(mask & (depth > 0))
@@ -463,14 +453,15 @@ def _model_trunk(lm_id: int, obs: list[tuple[TrunkView, Detection]], places: np.
         # A band whose axis point strays from the whole trunk's axis by more than BAND_AGREEMENT_M took in
         # something else (weeds at that height: 20 mm on slope_weeds, where the two sides' axes then missed
         # each other by 14 mm after the merge); the plain foot is kept then (others: 0.5-6 mm).
-        c = band.cylinder
-        den = float(height_ground.normal @ c.axis)
-        if abs(den) > 1e-3:
-            at_height = c.origin + (params.diameter_height_m - float(height_ground.height_of(c.origin))) / den * c.axis
+        n, d = height_ground.normal, height_ground.offset
+        try:
+            at_height = band.cylinder.point_at_height(n, d, params.diameter_height_m)
             off = at_height - coarse.cylinder.origin
             off -= (off @ axis) * axis
             if np.linalg.norm(off) <= BAND_AGREEMENT_M:
-                base = _line_plane_point(at_height, cone.axis, height_ground.normal, height_ground.offset, base)
+                base = Cylinder(cone.axis, at_height, cone.radius).point_at_height(n, d, 0.0)
+        except CylinderError:  # an axis along the ground: the plain foot stays
+            pass
     observations = []
     for (v, det), n_band in zip(obs, band_pixels):
         cyl_cam = band.cylinder.transformed(np.linalg.inv(v.T_odom_cam)) if band is not None else None
