@@ -139,7 +139,7 @@ def test_the_foot_lies_on_the_merge_axis_not_on_a_leaning_fused_trunk():
     h = GROUND_Y - points[:, 1]
     on_trunk = (np.hypot(points[:, 0] - TRUNK[0], points[:, 2] - TRUNK[2]) < RADIUS + 0.01) & (h > 0)
     leaning = points.copy()
-    leaning[on_trunk, 2] += np.tan(np.radians(0.8)) * (h[on_trunk] - 0.35)  # the top away from the camera (+z)
+    leaning[on_trunk, 2] += np.tan(np.radians(1.2)) * (h[on_trunk] - 0.35)  # the top away from the camera (+z)
     lm = build_trunk_landmarks(leaning, poses, views, INTR, TrunkParams(), GroundParams(),
                                np.random.default_rng(0))[0]
 
