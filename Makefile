@@ -33,7 +33,7 @@ $(STAMP): $(SETUP_INPUTS)
 # pytest exit 5 means "no tests collected": report it plainly and fail.
 # -p no:dash: the pytest plugin of dash (pulled in by open3d) is not ours.
 test: setup
-	@rc=0; $(PY) -m pytest test -q -ra --timeout=1800 -p no:dash $(PYTEST_ARGS) || rc=$$?; \
+	@rc=0; $(PY) -m pytest test -q -ra --durations=15 --timeout=1800 -p no:dash $(PYTEST_ARGS) || rc=$$?; \
 	if [ $$rc -eq 5 ]; then echo "make test: pytest collected no tests (exit 5)" >&2; fi; \
 	exit $$rc
 

@@ -43,7 +43,7 @@ from orchard_mapping.eval.evaluate import trunk_scene_points  # noqa: E402
 from orchard_mapping.eval.ground_truth import load_ground_truth  # noqa: E402
 from orchard_mapping.core.geometry import matrix_to_quat  # noqa: E402
 from orchard_mapping.core.types import StampedTrajectory  # noqa: E402
-from orchard_mapping.eval.metrics import map_merge_error, merge_error, rigid_rmse_mm  # noqa: E402
+from orchard_mapping.eval.metrics import map_merge_error, merge_error, rigid_rmse_mm, trajectory_between  # noqa: E402
 from orchard_mapping.pipeline import Timings, map_poses, merge_sides, open_sides, reconstruct_side, two_side_trees  # noqa: E402
 from orchard_mapping.sim.scenario import load_scenario  # noqa: E402
 from orchard_mapping.sim.simulate import simulate  # noqa: E402
@@ -160,12 +160,12 @@ def _score(method: str, sides: dict[str, Any], gt: Any) -> dict[str, Any]:
                          np.array([t.trunk_base for t in gt.trees]).reshape(-1, 3),
                          scene_points=trunk_scene_points(gt))
     # The same error with each side fitted on its trunk-seeing sweep only (its keyframes from the first to the
-    # last trunk observation): what the merge itself got right, the side's other sweeps' drift left out.
+    # last trunk observation, as the evaluator's merge.map_trunk_sweep): what the merge itself got right, the
+    # side's other sweeps' drift left out.
     trunk_sweep = {}
     for side, tr in in_map.items():
-        seen = [o.keyframe for t in sides[side].trunks for o in t.observations]
-        ks = slice(min(seen), max(seen) + 1) if seen else slice(None)
-        trunk_sweep[side] = StampedTrajectory(tr.stamps[ks], tr.positions[ks], tr.quaternions[ks])
+        seen = [o.stamp for t in sides[side].trunks for o in t.observations]
+        trunk_sweep[side] = trajectory_between(tr, min(seen), max(seen)) if seen else tr
     ms = map_merge_error(trunk_sweep["front"], trunk_sweep["back"], gt.sides["front"].trajectory,
                          gt.sides["back"].trajectory, gt.sides["front"].T_world_odom, gt.sides["back"].T_world_odom,
                          np.array([t.trunk_base for t in gt.trees]).reshape(-1, 3), scene_points=trunk_scene_points(gt))

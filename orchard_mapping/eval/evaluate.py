@@ -21,6 +21,7 @@ from orchard_mapping.eval.metrics import (
     TrajectoryError,
     double_count,
     map_merge_error,
+    trajectory_between,
     match_trees,
     merge_error,
     rigid_rmse_mm,
@@ -99,6 +100,28 @@ def _trunk_axis_gaps_mm(result_dir: Path, sm, trunks, height_m: float) -> dict[s
     if not gaps:
         return None
     return {"median": float(np.median(gaps)), "max": float(np.max(gaps)), "n": len(gaps)}
+
+
+def _map_error_trunk_sweep(gt: GroundTruth, maps: list[Path], trunks: list, world_bases: np.ndarray,
+                           max_dt_s: float, skipped: dict[str, str]) -> MergeError | None:
+    """The merged map's error with each side's keyframes limited to the stretch of time in which it saw its
+    trunks (its first to its last trunk observation in trunks.json): on a two-sweep path the raised sweep
+    sees no trunk, and its own drift against the level sweep is a single-side error, not the merge's."""
+    spans = {}
+    for side in ("front", "back"):
+        stamps = np.concatenate([t.stamps for t in trunks if t.side == side] or [np.zeros(0)])
+        if stamps.size == 0:
+            skipped["merge.map_trunk_sweep"] = f"the {side} side has no trunk observation in {TRUNKS_JSON}"
+            return None
+        spans[side] = (float(stamps.min()) - max_dt_s, float(stamps.max()) + max_dt_s)
+    est = {side: trajectory_between(read_tum(p), *spans[side]) for side, p in zip(("front", "back"), maps)}
+    try:
+        return map_merge_error(est["front"], est["back"], gt.sides["front"].trajectory, gt.sides["back"].trajectory,
+                               gt.sides["front"].T_world_odom, gt.sides["back"].T_world_odom, world_bases, max_dt_s,
+                               scene_points=trunk_scene_points(gt))
+    except AlignmentError as err:
+        skipped["merge.map_trunk_sweep"] = str(err)
+        return None
 
 
 def trunk_scene_points(gt: GroundTruth) -> np.ndarray:
@@ -270,6 +293,7 @@ def evaluate_result(
 
     merge: MergeError | None = None
     merge_map: MergeError | None = None
+    merge_map_trunk_sweep: MergeError | None = None
     gaps: dict[str, float] | None = None
     if (result_dir / SIDE_MERGE_JSON).is_file():
         sm = read_side_merge(result_dir / SIDE_MERGE_JSON)
@@ -289,6 +313,9 @@ def evaluate_result(
                                             scene_points=trunk_scene_points(gt))
             except AlignmentError as err:
                 skipped["merge.map"] = str(err)
+            if merge_map is not None and (result_dir / TRUNKS_JSON).is_file():
+                merge_map_trunk_sweep = _map_error_trunk_sweep(gt, maps, read_trunks(result_dir / TRUNKS_JSON),
+                                                               world_bases, trajectory_max_dt_s, skipped)
         else:
             skipped["merge.map"] = "no metric trajectory_<side>_map.tum pair"
         if (result_dir / TRUNKS_JSON).is_file():
@@ -340,6 +367,7 @@ def evaluate_result(
         double_count=dc,
         merge=merge,
         merge_map=merge_map,
+        merge_map_trunk_sweep=merge_map_trunk_sweep,
         sides=sides,
         timings=timings,
         pairs=pairs,

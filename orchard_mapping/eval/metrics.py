@@ -35,6 +35,7 @@ __all__ = [
     "match_trees",
     "merge_error",
     "rigid_rmse_mm",
+    "trajectory_between",
     "trajectory_error",
 ]
 
@@ -213,6 +214,15 @@ def map_merge_error(front_map: StampedTrajectory, back_map: StampedTrajectory, f
     return MergeError(rotation_error_deg=rotation_angle_deg(D[:3, :3]), translation_error_mm=1000.0 * float(err.mean()),
                       max_translation_error_mm=1000.0 * float(err.max()), n_points=int(pts.shape[0]), scale=1.0,
                       scale_error_percent=None)
+
+
+def trajectory_between(traj: StampedTrajectory, t0: float, t1: float) -> StampedTrajectory:
+    """The poses of traj stamped within [t0, t1] s (e.g. a side's sweep that saw its trunks: the stamps of
+    its first and last trunk observation)."""
+    st = np.asarray(traj.stamps, float)
+    keep = (st >= t0) & (st <= t1)
+    return StampedTrajectory(st[keep], np.asarray(traj.positions)[keep], np.asarray(traj.quaternions)[keep],
+                             traj.frame_id)
 
 
 def rigid_rmse_mm(est: np.ndarray, true: np.ndarray) -> float | None:

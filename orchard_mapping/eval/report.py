@@ -145,6 +145,9 @@ class EvaluationReport:
     # The merged map's placement of the back side against the front side, each side's drift left out
     # (eval.metrics.map_merge_error); None without both sides' trajectories in map.
     merge_map: MergeError | None = None
+    # The same with each side's keyframes limited to the sweep that saw its trunks (its first to its last
+    # trunk observation): what the merge placed, a side's other sweeps' own drift left out.
+    merge_map_trunk_sweep: MergeError | None = None
 
     def to_dict(self) -> dict[str, Any]:
         """JSON-serialisable; every key is always present (null where not evaluated)."""
@@ -159,7 +162,8 @@ class EvaluationReport:
             "double_count": _plain(self.double_count),
             "merge": None if self.merge is None else {**_plain(self.merge),
                                                       "trunk_axis_gap_mm": self.trunk_axis_gap_mm,
-                                                      "map": _plain(self.merge_map)},
+                                                      "map": _plain(self.merge_map),
+                                                      "map_trunk_sweep": _plain(self.merge_map_trunk_sweep)},
             "trees": {"position_rmse_mm": None if self.matching is None else self.matching.position_rmse_mm},
             "sides": {name: _plain(err) for name, err in self.sides.items()},
             "trunks": {name: _plain(e) for name, e in self.trunks.items()},
@@ -248,6 +252,11 @@ class EvaluationReport:
                           "back side vs front side in map, each fitted to its truth"),
                          ("merged map translation error", _fmt(m.translation_error_mm, 1), "mm",
                           f"mean over {m.n_points} trunk bases; max {_fmt(m.max_translation_error_mm, 1)} mm")]
+            ms = self.merge_map_trunk_sweep
+            if ms is not None:
+                rows.append(("merged map error, trunk-seeing sweeps", f"{_fmt(ms.rotation_error_deg, 3)} / "
+                             f"{_fmt(ms.translation_error_mm, 1)}", "deg / mm",
+                             "each side's keyframes from its first to its last trunk observation"))
             gap = self.trunk_axis_gap_mm
             if gap is not None:
                 rows.append(("trunk axis gap after the merge", _fmt(gap["median"], 1), "mm",

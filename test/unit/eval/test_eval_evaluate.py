@@ -402,3 +402,37 @@ def test_merged_map_error_needs_both_map_trajectories(truth_path: Path, result_d
     (result_dir / "trajectory_back_map.tum").unlink()
     rep = evaluate_result(truth_path, result_dir)
     assert rep.merge is not None and rep.merge_map is None and "merge.map" in rep.skipped
+
+
+def _trunks_json(result_dir: Path, stamps: dict[str, list[float]]) -> None:
+    """trunks.json with one trunk per side observed at these stamps (s); a side without stamps has none."""
+    sides = {}
+    for side, st in stamps.items():
+        trunks = [] if not st else [{"id": 0, "base": [0.0, 0.0, 1.2], "axis": [0.0, -1.0, 0.0], "length_m": 0.6,
+                                     "diameter_m": 0.07, "band": None, "n_points": 100, "n_observations": len(st),
+                                     "flags": [], "observations": [{"keyframe": k, "stamp": s}
+                                                                   for k, s in enumerate(st)]}]
+        sides[side] = {"frame": f"odom_{side}", "trunks": trunks}
+    (result_dir / "trunks.json").write_text(json.dumps({"schema": "orchard_mapping.trunks/1", "sides": sides}))
+
+
+def test_merged_map_error_on_the_trunk_seeing_sweeps(
+    truth_path: Path, result_dir: Path, truth: dict[str, Any], kit: types.SimpleNamespace
+) -> None:
+    """With trunks.json, the merged map's error is also given with each side's keyframes limited to the
+    stamps of its trunk observations: over the whole recording it equals the full figure; a side without
+    trunks skips it and says why."""
+    turn = np.eye(4)
+    turn[:3, :3] = Rotation.from_rotvec(np.radians(0.5) * np.array([1.0, 0.0, 0.0])).as_matrix()
+    _write_map_trajectories(result_dir, truth, kit, turn, np.eye(4))
+    span = {side: [float(kit.true_trajectory(truth, side, kit.keyframe_step).stamps[i]) for i in (0, -1)]
+            for side in ("front", "back")}
+    _trunks_json(result_dir, span)
+    rep = evaluate_result(truth_path, result_dir)
+    assert rep.merge_map is not None and rep.merge_map_trunk_sweep is not None
+    assert rep.merge_map_trunk_sweep.rotation_error_deg == pytest.approx(rep.merge_map.rotation_error_deg, abs=1e-9)
+    assert rep.to_dict()["merge"]["map_trunk_sweep"]["rotation_error_deg"] == pytest.approx(0.5, abs=1e-6)
+    _trunks_json(result_dir, {"front": span["front"], "back": []})
+    rep = evaluate_result(truth_path, result_dir)
+    assert rep.merge_map is not None and rep.merge_map_trunk_sweep is None
+    assert "back side has no trunk observation" in rep.skipped["merge.map_trunk_sweep"]
