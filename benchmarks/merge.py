@@ -68,6 +68,30 @@ def _sides(sim_dir: Path, reuse: bool, masks: bool = False) -> dict[str, Any]:
     return sides
 
 
+def add_case_arguments(ap: argparse.ArgumentParser) -> None:
+    """The options that name a simulated case and its reconstructed sides (shared by the benchmarks that
+    reuse this one's cache)."""
+    ap.add_argument("--scenarios", nargs="+", default=["standard", "slope_weeds"])
+    ap.add_argument("--trees", type=int, default=10)
+    ap.add_argument("--rate", type=float, default=15.0)
+    ap.add_argument("--seed", type=int, default=0)
+    ap.add_argument("--workdir", type=Path, default=Path("/tmp/merge_bench"))
+    ap.add_argument("--reuse", action="store_true",
+                    help="skip simulating (and reconstructing: sides.pkl) when the case folder holds them")
+    ap.add_argument("--json", type=Path)
+    ap.add_argument("--masks", action="store_true",
+                    help="trunks from the simulator's exact instance masks instead of the shipped detector")
+
+
+def case_sides(scenario: str, args: argparse.Namespace) -> tuple[Any, dict[str, Any]]:
+    """(ground truth, both sides reconstructed with their trunks) of one scenario (add_case_arguments)."""
+    sim_dir = args.workdir / f"{scenario}_{args.trees}trees_{args.rate:g}hz_seed{args.seed}" / "sim"
+    if not (args.reuse and (sim_dir / "ground_truth.json").is_file()):
+        simulate(load_scenario(scenario, {"row.n_trees": args.trees, "camera.rate_hz": args.rate}), args.seed,
+                 sim_dir, force=True)
+    return load_ground_truth(sim_dir / "ground_truth.json"), _sides(sim_dir, args.reuse, args.masks)
+
+
 def _shift_transform(T: np.ndarray, d: np.ndarray) -> np.ndarray:
     out = np.array(T, float, copy=True)
     out[..., :3, 3] += d
@@ -211,16 +235,7 @@ def _f(v: float | None, d: int = 2) -> str:
 
 def main(argv: list[str] | None = None) -> int:
     ap = argparse.ArgumentParser(description=__doc__.split("\n")[0])
-    ap.add_argument("--scenarios", nargs="+", default=["standard", "slope_weeds"])
-    ap.add_argument("--trees", type=int, default=10)
-    ap.add_argument("--rate", type=float, default=15.0)
-    ap.add_argument("--seed", type=int, default=0)
-    ap.add_argument("--workdir", type=Path, default=Path("/tmp/merge_bench"))
-    ap.add_argument("--reuse", action="store_true",
-                    help="skip simulating (and reconstructing: sides.pkl) when the case folder holds them")
-    ap.add_argument("--json", type=Path)
-    ap.add_argument("--masks", action="store_true",
-                    help="trunks from the simulator's exact instance masks instead of the shipped detector")
+    add_case_arguments(ap)
     ap.add_argument("--tile", type=int, nargs="*", default=[],
                     help="also merge the reconstructed sides repeated K times along the row (long rows without "
                          "rendering them: time and memory), e.g. --tile 3 10")
@@ -228,12 +243,7 @@ def main(argv: list[str] | None = None) -> int:
     args = ap.parse_args(argv)
     rows = []
     for sc in args.scenarios:
-        sim_dir = args.workdir / f"{sc}_{args.trees}trees_{args.rate:g}hz_seed{args.seed}" / "sim"
-        if not (args.reuse and (sim_dir / "ground_truth.json").is_file()):
-            simulate(load_scenario(sc, {"row.n_trees": args.trees, "camera.rate_hz": args.rate}), args.seed, sim_dir,
-                     force=True)
-        gt = load_ground_truth(sim_dir / "ground_truth.json")
-        sides = _sides(sim_dir, args.reuse, args.masks)
+        gt, sides = case_sides(sc, args)
         for copies in [1, *args.tile]:
             s_k, gt_k = (sides, gt) if copies == 1 else _tiled(sides, gt, copies)
             for method in METHODS if copies == 1 else args.tile_methods:

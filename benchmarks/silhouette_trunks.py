@@ -32,15 +32,12 @@ from rich.console import Console  # noqa: E402
 from rich.table import Table  # noqa: E402
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
-from merge import _sides  # noqa: E402
+from merge import add_case_arguments, case_sides  # noqa: E402
 
 from orchard_mapping.core.cylinder import CylinderError  # noqa: E402
-from orchard_mapping.core.geometry import transform_points  # noqa: E402
+from orchard_mapping.core.geometry import pose_matrices, transform_points  # noqa: E402
 from orchard_mapping.core.silhouette import TangentPlane, cylinder_from_silhouettes, outline_planes  # noqa: E402
-from orchard_mapping.eval.ground_truth import load_ground_truth  # noqa: E402
-from orchard_mapping.eval.metrics import associate_stamps, pose_matrices  # noqa: E402
-from orchard_mapping.sim.scenario import load_scenario  # noqa: E402
-from orchard_mapping.sim.simulate import simulate  # noqa: E402
+from orchard_mapping.eval.metrics import associate_stamps  # noqa: E402
 
 
 def _side_rows(sm: Any, gt: Any, side: str, half: float) -> dict[str, Any]:
@@ -98,24 +95,12 @@ def _f(v: float | None, d: int = 2) -> str:
 
 def main(argv: list[str] | None = None) -> int:
     ap = argparse.ArgumentParser(description=__doc__.split("\n")[0])
-    ap.add_argument("--scenarios", nargs="+", default=["standard", "slope_weeds"])
-    ap.add_argument("--trees", type=int, default=10)
-    ap.add_argument("--rate", type=float, default=15.0)
-    ap.add_argument("--seed", type=int, default=0)
-    ap.add_argument("--workdir", type=Path, default=Path("/tmp/merge_bench"))
-    ap.add_argument("--reuse", action="store_true", help="reuse the simulation and sides.pkl when present")
-    ap.add_argument("--masks", action="store_true", help="the simulator's exact masks instead of the detector's")
+    add_case_arguments(ap)
     ap.add_argument("--half", type=float, default=0.08, help="m, half the band's length along the trunk")
-    ap.add_argument("--json", type=Path)
     args = ap.parse_args(argv)
     rows = []
     for sc in args.scenarios:
-        sim_dir = args.workdir / f"{sc}_{args.trees}trees_{args.rate:g}hz_seed{args.seed}" / "sim"
-        if not (args.reuse and (sim_dir / "ground_truth.json").is_file()):
-            simulate(load_scenario(sc, {"row.n_trees": args.trees, "camera.rate_hz": args.rate}), args.seed, sim_dir,
-                     force=True)
-        gt = load_ground_truth(sim_dir / "ground_truth.json")
-        sides = _sides(sim_dir, args.reuse, args.masks)
+        gt, sides = case_sides(sc, args)
         for side in ("front", "back"):
             rows.append({"scenario": sc, "side": side, **_side_rows(sides[side], gt, side, args.half)})
             print(json.dumps(rows[-1]), file=sys.stderr)
