@@ -13,6 +13,7 @@ import numpy as np
 import yaml
 
 from orchard_mapping.core.geometry import move_with_keyframes, pose_matrices, transform_points
+from orchard_mapping.core.types import StampedTrajectory
 from orchard_mapping.errors import AlignmentError, ResultFormatError
 from orchard_mapping.eval.ground_truth import GroundTruth, load_ground_truth
 from orchard_mapping.eval.metrics import (
@@ -21,10 +22,10 @@ from orchard_mapping.eval.metrics import (
     TrajectoryError,
     double_count,
     map_merge_error,
-    trajectory_between,
     match_trees,
     merge_error,
     rigid_rmse_mm,
+    trajectory_between,
     trajectory_error,
 )
 from orchard_mapping.eval.report import (
@@ -102,8 +103,8 @@ def _trunk_axis_gaps_mm(result_dir: Path, sm, trunks, height_m: float) -> dict[s
     return {"median": float(np.median(gaps)), "max": float(np.max(gaps)), "n": len(gaps)}
 
 
-def _map_error_trunk_sweep(gt: GroundTruth, maps: list[Path], trunks: list, world_bases: np.ndarray,
-                           max_dt_s: float, skipped: dict[str, str]) -> MergeError | None:
+def _map_error_trunk_sweep(gt: GroundTruth, maps: dict[str, StampedTrajectory], trunks: list,
+                           world_bases: np.ndarray, max_dt_s: float, skipped: dict[str, str]) -> MergeError | None:
     """The merged map's error with each side's keyframes limited to the stretch of time in which it saw its
     trunks (its first to its last trunk observation in trunks.json): on a two-sweep path the raised sweep
     sees no trunk, and its own drift against the level sweep is a single-side error, not the merge's."""
@@ -114,7 +115,7 @@ def _map_error_trunk_sweep(gt: GroundTruth, maps: list[Path], trunks: list, worl
             skipped["merge.map_trunk_sweep"] = f"the {side} side has no trunk observation in {TRUNKS_JSON}"
             return None
         spans[side] = (float(stamps.min()) - max_dt_s, float(stamps.max()) + max_dt_s)
-    est = {side: trajectory_between(read_tum(p), *spans[side]) for side, p in zip(("front", "back"), maps)}
+    est = {side: trajectory_between(maps[side], *spans[side]) for side in ("front", "back")}
     try:
         return map_merge_error(est["front"], est["back"], gt.sides["front"].trajectory, gt.sides["back"].trajectory,
                                gt.sides["front"].T_world_odom, gt.sides["back"].T_world_odom, world_bases, max_dt_s,
@@ -295,6 +296,7 @@ def evaluate_result(
     merge_map: MergeError | None = None
     merge_map_trunk_sweep: MergeError | None = None
     gaps: dict[str, float] | None = None
+    trunks = read_trunks(result_dir / TRUNKS_JSON) if (result_dir / TRUNKS_JSON).is_file() else None
     if (result_dir / SIDE_MERGE_JSON).is_file():
         sm = read_side_merge(result_dir / SIDE_MERGE_JSON)
         T_back_world = np.linalg.inv(gt.sides["back"].T_world_odom)
@@ -306,20 +308,21 @@ def evaluate_result(
         maps = [result_dir / map_trajectory_filename(side) for side in ("front", "back")]
         if all(p.is_file() for p in maps) and not (_rgb_only(result_dir) if scale_alignment is None else scale_alignment):
             world_bases = np.array([t.trunk_base for t in gt.trees]).reshape(-1, 3)
+            in_map = {side: read_tum(p) for side, p in zip(("front", "back"), maps)}
             try:
-                merge_map = map_merge_error(read_tum(maps[0]), read_tum(maps[1]), gt.sides["front"].trajectory,
+                merge_map = map_merge_error(in_map["front"], in_map["back"], gt.sides["front"].trajectory,
                                             gt.sides["back"].trajectory, gt.sides["front"].T_world_odom,
                                             gt.sides["back"].T_world_odom, world_bases, trajectory_max_dt_s,
                                             scene_points=trunk_scene_points(gt))
             except AlignmentError as err:
                 skipped["merge.map"] = str(err)
-            if merge_map is not None and (result_dir / TRUNKS_JSON).is_file():
-                merge_map_trunk_sweep = _map_error_trunk_sweep(gt, maps, read_trunks(result_dir / TRUNKS_JSON),
-                                                               world_bases, trajectory_max_dt_s, skipped)
+            if merge_map is not None and trunks is not None:
+                merge_map_trunk_sweep = _map_error_trunk_sweep(gt, in_map, trunks, world_bases, trajectory_max_dt_s,
+                                                               skipped)
         else:
             skipped["merge.map"] = "no metric trajectory_<side>_map.tum pair"
-        if (result_dir / TRUNKS_JSON).is_file():
-            gaps = _trunk_axis_gaps_mm(result_dir, sm, read_trunks(result_dir / TRUNKS_JSON),
+        if trunks is not None:
+            gaps = _trunk_axis_gaps_mm(result_dir, sm, trunks,
                                        gt.diameter_height_m or DEFAULT_DIAMETER_HEIGHT_M)
     else:
         skipped["merge"] = f"{SIDE_MERGE_JSON} absent"
@@ -339,8 +342,7 @@ def evaluate_result(
 
     trunks_e: dict[str, object] = {}
     grounds_e: dict[str, object] = {}
-    if (result_dir / TRUNKS_JSON).is_file():
-        trunks = read_trunks(result_dir / TRUNKS_JSON)
+    if trunks is not None:
         grounds = read_grounds(result_dir / GROUNDS_JSON) if (result_dir / GROUNDS_JSON).is_file() else []
         for name, side in gt.sides.items():
             path = result_dir / trajectory_filename(name)
