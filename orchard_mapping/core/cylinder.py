@@ -46,6 +46,7 @@ __all__ = [
     "cylinder_from_oriented_points",
     "fit_cylinder",
     "fit_cylinders_shared_radius",
+    "perpendicular_basis",
     "point_distance",
     "ransac_cylinder",
     "refine_cone_axis",
@@ -288,7 +289,9 @@ def view_residuals(cyl_cam: Cylinder, X: np.ndarray, uv: np.ndarray, rays: np.nd
 
 # --------------------------------------------------------------------------- joint refinement
 
-def _basis(a: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+def perpendicular_basis(a: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """(e1, e2): two unit vectors (3,) across the unit axis a (3,) and across each other (the directions an
+    axis is tilted and moved in by the fits)."""
     h = np.array([1.0, 0.0, 0.0]) if abs(a[0]) < 0.9 else np.array([0.0, 1.0, 0.0])
     e1 = np.cross(a, h)
     e1 /= np.linalg.norm(e1)
@@ -301,7 +304,7 @@ def _refine(parts: list[tuple[Cylinder, np.ndarray, list[_ViewData]]], intr: Cam
     initial cylinder, 3D-term points (N, 3), prepared views) has its own axis and origin (4 parameters,
     across its initial axis); the radius is common (eq. objectCylinderFB for two sides; one part is
     eq. objectCylinder)."""
-    bases = [_basis(c0.axis) for c0, _, _ in parts]
+    bases = [perpendicular_basis(c0.axis) for c0, _, _ in parts]
     r0 = float(np.mean([c0.radius for c0, _, _ in parts]))
 
     def unpack(x: np.ndarray) -> list[Cylinder]:
@@ -340,7 +343,7 @@ def refine_cone_axis(points: np.ndarray, cyl: Cylinder, *, threshold_m: float, s
     P = P[np.abs(point_distance(P, cyl)) < threshold_m]
     if len(P) < 20:
         return cyl, 0.0
-    e1, e2 = _basis(cyl.axis)
+    e1, e2 = perpendicular_basis(cyl.axis)
 
     def unpack(x: np.ndarray) -> tuple[np.ndarray, np.ndarray, float, float]:
         a = cyl.axis + x[0] * e1 + x[1] * e2

@@ -23,7 +23,7 @@ from dataclasses import dataclass
 import numpy as np
 from scipy.optimize import least_squares
 
-from orchard_mapping.core.cylinder import Cylinder, CylinderError
+from orchard_mapping.core.cylinder import Cylinder, CylinderError, perpendicular_basis
 from orchard_mapping.core.types import CameraIntrinsics
 
 __all__ = ["TangentPlane", "cylinder_from_silhouettes", "outline_planes"]
@@ -84,20 +84,20 @@ def outline_planes(mask: np.ndarray, T_map_cam: np.ndarray, intr: CameraIntrinsi
     v, ul, ur = _edge_columns(m, np.arange(v0, v1 + 1))
     K = np.array([[intr.fx, 0.0, intr.cx], [0.0, intr.fy, intr.cy], [0.0, 0.0, 1.0]])
     R, c = T_map_cam[:3, :3], T_map_cam[:3, 3]
+    if len(v) == 0:
+        return []
+    # into the trunk: the ray through the outline's middle row at the trunk's centre column
+    um, vm = float(np.median(0.5 * (ul + ur))), float(np.median(v))
+    inside = np.array([(um - intr.cx) / intr.fx, (vm - intr.cy) / intr.fy, 1.0])
     out = []
-    mid = 0.5 * (ul + ur)
     for side, u in ((-1, ul), (1, ur)):
-        line = _robust_line(v, u, max_edge_px, min_rows) if len(v) else None
+        line = _robust_line(v, u, max_edge_px, min_rows)
         if line is None:
             continue
         a, b = line
         l_img = np.array([1.0, -a, -b])  # u - a v - b = 0
         n_cam = K.T @ l_img  # the plane through the centre that projects onto the line
         n_cam /= np.linalg.norm(n_cam)
-        # into the trunk: the ray through the outline's middle row at the trunk's centre column
-        vm = float(np.median(v))
-        um = float(np.median(mid))
-        inside = np.array([(um - intr.cx) / intr.fx, (vm - intr.cy) / intr.fy, 1.0])
         if n_cam @ inside < 0:
             n_cam = -n_cam
         n = R @ n_cam
@@ -139,8 +139,9 @@ def cylinder_from_silhouettes(planes: list[TangentPlane], segment: tuple[float, 
     """The straight cylinder that touches every tangent plane along its segment: (cylinder, residuals (2P,)
     map units). segment (t0, t1): where along the axis, from the cylinder's origin, the outlines were taken
     (the band); origin_hint (3,): a point near where the origin should be along the axis (e.g. the band's
-    height), else the least-squares point; up (3,): which way the axis points (map z when None). Residual of plane i at t: n_i . (O + t a) + d_i - r (Huber,
-    huber_scale in map units). Needs two views that each give both outlines."""
+    height), else the least-squares point; up (3,): which way the axis points (map z when None). Residual
+    of plane i at t: n_i . (O + t a) + d_i - r (Huber, huber_scale in map units). Needs two views that each
+    give both outlines."""
     if len(planes) < 4:
         raise CylinderError(f"silhouette cylinder: {len(planes)} tangent planes; four (two views) are needed")
     a0, X0 = _initial_axis(planes, np.array([0.0, 0.0, 1.0]) if up is None else np.asarray(up, float))
@@ -151,10 +152,7 @@ def cylinder_from_silhouettes(planes: list[TangentPlane], segment: tuple[float, 
     r0 = float(np.median(Nn @ X0 + Dd))
     if not np.isfinite(r0) or r0 <= 0:
         raise CylinderError(f"silhouette cylinder: the outlines meet on the wrong side of the axis (r0 = {r0:.4f})")
-    h = np.array([1.0, 0.0, 0.0]) if abs(a0[0]) < 0.9 else np.array([0.0, 1.0, 0.0])
-    e1 = np.cross(a0, h)
-    e1 /= np.linalg.norm(e1)
-    e2 = np.cross(a0, e1)
+    e1, e2 = perpendicular_basis(a0)
     ts = np.asarray(segment, float)
 
     def unpack(x: np.ndarray) -> tuple[np.ndarray, np.ndarray, float]:
