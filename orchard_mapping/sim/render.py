@@ -45,11 +45,15 @@ class SurfaceTexture:
 
     def lookup(self, u: np.ndarray, v: np.ndarray) -> np.ndarray:
         """Texture at texel coordinates u, v (same shape, float32)."""
-        shape = u.shape
-        u2 = np.ascontiguousarray(u.reshape(-1, 640) if u.size % 640 == 0 else u.reshape(1, -1))
-        v2 = np.ascontiguousarray(v.reshape(u2.shape))
-        out = cv2.remap(self.image, u2, v2, cv2.INTER_LINEAR, borderMode=cv2.BORDER_WRAP)
-        return out.reshape(shape)
+        # cv2.remap takes maps under 32767 rows and columns: lay any count out as rows of 1024 (padded).
+        shape, n = u.shape, u.size
+        rows = -(-n // 1024)
+        uv = np.zeros((2, rows * 1024), np.float32)
+        uv[0, :n] = u.ravel()
+        uv[1, :n] = v.ravel()
+        out = cv2.remap(self.image, uv[0].reshape(rows, 1024), uv[1].reshape(rows, 1024), cv2.INTER_LINEAR,
+                        borderMode=cv2.BORDER_WRAP)
+        return out.ravel()[:n].reshape(shape)
 
 
 @dataclass(frozen=True)
@@ -73,6 +77,7 @@ class Renderer:
         self._cls_ext = np.append(scene.tri_cls, np.uint8(Cls.SKY))
         self._inst_ext = np.append(scene.tri_inst, np.int32(-1))
         self._albedo_ext = np.vstack([scene.tri_albedo, np.zeros((1, 3), np.float32)])
+        self._lut = self._luts()  # per-class texture tables: the scene's appearance is fixed
         u, v = np.meshgrid(np.arange(intrinsics.width, dtype=np.float32),
                            np.arange(intrinsics.height, dtype=np.float32))
         self._dirs_cam = np.stack([(u - intrinsics.cx) / intrinsics.fx, (v - intrinsics.cy) / intrinsics.fy,
@@ -104,17 +109,19 @@ class Renderer:
             if self._static is None:
                 self._static = self._raycaster(self.scene.vertices)
             rc = self._static
-        R = T_world_cam[:3, :3]
-        dirs = self._dirs_cam @ R.T.astype(np.float32)
-        rays = np.hstack([np.broadcast_to(T_world_cam[:3, 3].astype(np.float32), dirs.shape), dirs])
-        hit = rc.cast_rays(o3d.core.Tensor(np.ascontiguousarray(rays)))
+        n_px = len(self._dirs_cam)
+        rays = np.empty((n_px, 6), np.float32)  # (HW, 6): origin, direction, as cast_rays takes them
+        rays[:, :3] = T_world_cam[:3, 3]
+        dirs = rays[:, 3:]
+        np.matmul(self._dirs_cam, T_world_cam[:3, :3].T.astype(np.float32), out=dirs)
+        hit = rc.cast_rays(o3d.core.Tensor.from_numpy(rays))
         t_hit = hit["t_hit"].numpy()
         ok = np.isfinite(t_hit)
         sc = self.scene
         # Misses index a sentinel "sky" triangle so that every array below is full-size (no masked copies).
         sky_id = len(sc.triangles)
         prim = np.where(ok, hit["primitive_ids"].numpy(), sky_id).astype(np.int64)
-        t_hit = np.where(ok, t_hit, 0.0).astype(np.float32)
+        t_hit = np.where(ok, t_hit, np.float32(0.0))
         cls = self._cls_ext[prim]
         inst = self._inst_ext[prim]
         if moving is not None:
@@ -125,21 +132,22 @@ class Renderer:
             p_rest = (1 - bu - bv) * tv[:, 0] + bu * tv[:, 1] + bv * tv[:, 2]
         else:
             p_rest = rays[:, :3] + t_hit[:, None] * dirs
-        n = hit["primitive_normals"].numpy()
-        n = n * np.where(np.einsum("ij,ij->i", n, dirs) > 0, -1.0, 1.0).astype(np.float32)[:, None]
+        n = hit["primitive_normals"].numpy()  # (HW, 3), turned below to face the camera
+        away = np.einsum("ij,ij->i", n, dirs) > 0
+        n[away] = -n[away]
         color = self._shade(p_rest, n, cls, self._albedo_ext[prim])
         miss = ~ok
         color[miss] = self._sky(dirs[miss])
         blur = self.scene.scenario.appearance.blur_sigma_px
         if blur > 0:  # optical blur (domain randomisation of training frames)
-            import cv2
-
             color = cv2.GaussianBlur(color.reshape(K.height, K.width, 3), (0, 0), blur).reshape(-1, 3)
-        p_rest[~ok] = 0.0
+        p_rest[miss] = 0.0
+        color *= np.float32(255.0)
+        np.clip(color, 0, 255, out=color)
         H, W = K.height, K.width
         return RenderOutput(
             depth=t_hit.reshape(H, W),
-            color=np.clip(color * 255.0, 0, 255).astype(np.uint8).reshape(H, W, 3),
+            color=color.astype(np.uint8).reshape(H, W, 3),
             cls=cls.reshape(H, W), inst=inst.reshape(H, W), tri=np.where(ok, prim, -1).reshape(H, W),
             points=p_rest.reshape(H, W, 3),
         )
@@ -159,11 +167,13 @@ class Renderer:
         Cls.POST: (600.0, 80.0), Cls.LEAF: (500.0, 500.0), Cls.HEDGE: (250.0, 250.0),
         Cls.WEED: (500.0, 500.0), Cls.FRUIT: (900.0, 900.0), Cls.WIRE: (100.0, 100.0),
     }
+    _FOLIAGE = np.isin(np.arange(len(Cls)), [Cls.LEAF, Cls.HEDGE, Cls.WEED])  # (len(Cls),) bool
     _TEX_GAIN = {Cls.GROUND: (0.45, 1.1), Cls.TRUNK: (0.4, 1.2), Cls.BRANCH: (0.4, 1.2), Cls.POST: (0.45, 1.1),
                  Cls.LEAF: (0.6, 0.8), Cls.HEDGE: (0.45, 1.1), Cls.WEED: (0.6, 0.8), Cls.FRUIT: (0.75, 0.5),
                  Cls.WIRE: (0.9, 0.2)}
 
-    def _luts(self) -> tuple[np.ndarray, np.ndarray]:
+    def _luts(self) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+        """Per-class lookup tables (len(Cls),): texels per metre (in-plane, vertical), texture offset and gain."""
         ap = self.scene.scenario.appearance
         scale = np.full((len(Cls), 2), 300.0, np.float32)
         gain = np.ones((len(Cls), 2), np.float32)
@@ -173,38 +183,39 @@ class Renderer:
         gain[Cls.TRUNK] = gain[Cls.BRANCH] = ap.bark_texture_gain
         if ap.texture_scale != 1.0:
             scale *= np.float32(ap.texture_scale)
-        return scale, gain
+        return (np.ascontiguousarray(scale[:, 0]), np.ascontiguousarray(scale[:, 1]),
+                np.ascontiguousarray(gain[:, 0]), np.ascontiguousarray(gain[:, 1]))
 
     def _shade(self, p: np.ndarray, n: np.ndarray, cls: np.ndarray, albedo: np.ndarray) -> np.ndarray:
-        scale, gain = self._luts()
-        s = scale[cls]
-        g = gain[cls]
+        """Colour (N, 3) float32 in [0, 1] of hit points p (N, 3) with normals n facing the camera; albedo (N, 3)
+        is a per-call copy, shaded in place. Lookups by class are one-dimensional tables (cheap gathers)."""
+        s_flat, s_vert, g_off, g_amp = self._lut
+        s0 = s_flat[cls]
         # Planar projection along the dominant normal axis: z-facing surfaces use (x, y), others (in-plane, z).
         an = np.abs(n)
         z_dom = an[:, 2] >= np.maximum(an[:, 0], an[:, 1])
-        x_dom = an[:, 0] > an[:, 1]
-        horiz = np.where(x_dom, p[:, 1], p[:, 0])
-        u = np.where(z_dom, p[:, 0], horiz) * s[:, 0]
-        v = np.where(z_dom, p[:, 1] * s[:, 0], p[:, 2] * s[:, 1])
-        tex = g[:, 0] + g[:, 1] * self.texture.lookup(u, v)
+        use_y = (an[:, 0] > an[:, 1]) & ~z_dom  # x-facing walls: in-plane axis y
+        u = np.where(use_y, p[:, 1], p[:, 0]) * s0
+        v = np.where(z_dom, p[:, 1] * s0, p[:, 2] * s_vert[cls])
+        tex = g_off[cls] + g_amp[cls] * self.texture.lookup(u, v)
         ap = self.scene.scenario.appearance
         alb = albedo
-        ground = cls == Cls.GROUND
-        if ground.any():
+        ground = np.flatnonzero(cls == Cls.GROUND)
+        if ground.size:
             # Soil and turf patches at the metre scale (an incommensurate scale of the same image).
             k = np.float32(37.0)
-            mix = np.clip((self.texture.lookup(p[:, 0] * k + 511.0, p[:, 1] * k + 97.0) - 0.5) * 5 + 0.5, 0, 1)
+            pg = p[ground]
+            mix = np.clip((self.texture.lookup(pg[:, 0] * k + 511.0, pg[:, 1] * k + 97.0) - 0.5) * 5 + 0.5, 0, 1)
             mix = mix[:, None]
-            turf = np.array(ap.soil_rgb, np.float32) * (1 - mix) + np.array(ap.turf_rgb, np.float32) * mix
-            alb = np.where(ground[:, None], turf, albedo)
+            alb[ground] = np.array(ap.soil_rgb, np.float32) * (1 - mix) + np.array(ap.turf_rgb, np.float32) * mix
         sun = np.asarray(ap.sun_dir, float)
         sun = sun / np.linalg.norm(sun)
         ndl = n @ sun.astype(np.float32)
-        foliage = (cls == Cls.LEAF) | (cls == Cls.HEDGE) | (cls == Cls.WEED)
         # Foliage transmits light: back-lit leaves are not black.
-        diffuse = np.where(foliage, np.abs(ndl) * 0.8, np.clip(ndl, 0, 1))
-        light = ap.ambient + ap.diffuse * diffuse
-        return alb * (tex * light)[:, None]
+        diffuse = np.where(self._FOLIAGE[cls], np.abs(ndl) * np.float32(0.8), np.clip(ndl, 0, 1))
+        light = np.float32(ap.ambient) + np.float32(ap.diffuse) * diffuse
+        alb *= (tex * light)[:, None]
+        return alb
 
 
 @dataclass(frozen=True)

@@ -134,13 +134,21 @@ class VisibilityAccumulator:
     def _add_ground(self, pts: np.ndarray) -> None:
         """Mark the terrain cells around each tree that these ground hit points (N, 3) fall in."""
         n_c = self.ground_cells.shape[1]
+        # Points sorted along the row's longer horizontal axis: each tree then looks only at the slice within
+        # the radius along that axis (a whole-frame pass per tree took 8 ms a tree at 640x480).
+        axis = int(np.argmax(np.ptp(self.gp[:, :2], axis=0))) if len(self.gp) > 1 else 0
+        order = np.argsort(pts[:, axis], kind="stable")
+        along = pts[order, axis]
+        lo = np.searchsorted(along, self.gp[:, axis] - LOCAL_GROUND_RADIUS_M, side="left")
+        hi = np.searchsorted(along, self.gp[:, axis] + LOCAL_GROUND_RADIUS_M, side="right")
         for t in range(len(self.gp)):
-            d = pts[:, :2] - self.gp[t, :2]  # (N, 2)
-            near = np.abs(d).max(axis=1) < LOCAL_GROUND_RADIUS_M
-            if not near.any():
+            if hi[t] <= lo[t]:
                 continue
-            d = d[near]
+            d = pts[order[lo[t]:hi[t]], :2] - self.gp[t, :2]  # (n, 2)
+            d = d[np.abs(d).max(axis=1) < LOCAL_GROUND_RADIUS_M]
             d = d[np.sum(d**2, axis=1) < LOCAL_GROUND_RADIUS_M**2]
+            if not len(d):
+                continue
             ij = np.unique(np.clip(((d + LOCAL_GROUND_RADIUS_M) / GROUND_CELL_M).astype(int), 0, n_c - 1), axis=0)
             self.ground_cells[t, ij[:, 0], ij[:, 1]] += 1
 
