@@ -274,10 +274,12 @@ class TrajectoryError:
 def trajectory_error(
     est: StampedTrajectory, true: StampedTrajectory, max_dt_s: float = 0.005, with_scale: bool = False
 ) -> TrajectoryError:
-    """Drift (first pose aligned exactly, nothing fitted) and ATE (Umeyama) of `est` against `true`.
+    """Drift (first pose aligned exactly) and ATE (Umeyama) of `est` against `true`.
 
-    Needs 2 associated poses for the drift and 3 for the ATE; otherwise the
-    values are None.
+    Rigid (se3): nothing is fitted for the drift. With scale (sim3, a colour-only side up to scale): the
+    estimate's translations are first multiplied by the ATE fit's scale, so the drift is what the side got
+    wrong beyond one global scale (without it a side in units of its first baseline reads as ~100 % drift).
+    Needs 2 associated poses for the drift and 3 for the ATE (and for a sim3 drift); otherwise None.
     """
     order_t = np.argsort(true.stamps, kind="stable")
     order_e = np.argsort(est.stamps, kind="stable")
@@ -290,11 +292,6 @@ def trajectory_error(
     T_est = pose_matrices(np.asarray(est.positions)[i], np.asarray(est.quaternions)[i])  # (n, 4, 4)
     T_true = pose_matrices(np.asarray(true.positions)[j], np.asarray(true.quaternions)[j])  # (n, 4, 4)
     length = path_length(np.asarray(true.positions)[order_t][j_s.min() : j_s.max() + 1])
-    # Drift: T_true0 inv(T_est0) applied to every estimated pose.
-    T_align = T_true[0] @ np.linalg.inv(T_est[0])
-    last = T_align @ T_est[-1]
-    drift = float(np.linalg.norm(last[:3, 3] - T_true[-1][:3, 3]))
-    rot = rotation_angle_deg(T_true[-1][:3, :3].T @ last[:3, :3])
 
     def pct(v: float) -> float | None:
         return 100.0 * v / length if length > 1e-9 else None
@@ -309,6 +306,16 @@ def trajectory_error(
             res = transform_points(sim.matrix(), T_est[:, :3, 3]) - T_true[:, :3, 3]  # (n, 3)
             rmse = float(np.sqrt(np.mean(np.sum(res**2, axis=1))))
             ate_mm, ate_pct, scale = 1000.0 * rmse, pct(rmse), float(sim.s)
+    if with_scale:
+        if scale is None:
+            return none
+        T_est = T_est.copy()
+        T_est[:, :3, 3] *= scale
+    # Drift: T_true0 inv(T_est0) applied to every estimated pose.
+    T_align = T_true[0] @ np.linalg.inv(T_est[0])
+    last = T_align @ T_est[-1]
+    drift = float(np.linalg.norm(last[:3, 3] - T_true[-1][:3, 3]))
+    rot = rotation_angle_deg(T_true[-1][:3, :3].T @ last[:3, :3])
     return TrajectoryError(
         n_associated=n,
         path_length_m=length,

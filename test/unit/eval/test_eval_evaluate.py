@@ -17,6 +17,7 @@ from scipy.spatial.transform import Rotation
 from orchard_mapping.core.types import StampedTrajectory
 from orchard_mapping.errors import GroundTruthError, ResultFormatError
 from orchard_mapping.eval import EvaluationReport, evaluate_result
+from orchard_mapping.eval.metrics import trajectory_error
 from orchard_mapping.io.results import ResultTree, read_side_merge, read_trees, write_side_merge, write_trees, write_tum
 
 
@@ -299,8 +300,26 @@ def test_scaled_trajectory_uses_sim3_for_rgb_runs(
     e = evaluate_result(truth_path, result_dir).sides["front"]
     assert e is not None and e.alignment == "sim3" and e.alignment_scale == pytest.approx(2.0)
     assert e.ate_mm == pytest.approx(0.0, abs=1e-6)
+    # the drift beyond the one global scale: none here (without the scale the end is half the path off)
+    assert e.drift_mm == pytest.approx(0.0, abs=1e-6) and e.final_rotation_error_deg == pytest.approx(0.0, abs=1e-6)
     e = evaluate_result(truth_path, result_dir, scale_alignment=False).sides["front"]
     assert e is not None and e.alignment == "se3"
+
+
+def test_sim3_drift_is_what_is_left_beyond_one_scale():
+    """A colour-only side in units of its first baseline (x 0.4), with its end bent 0.1 m sideways over a
+    10 m path: the sim3 drift sees the bend (about 0.1 m), the rigid one reads the scale as ~6 m of drift."""
+    t = np.linspace(0.0, 20.0, 201)
+    true_p = np.stack([0.5 * t, np.zeros_like(t), np.zeros_like(t)], 1)  # (N, 3) m, 10 m straight
+    q = np.tile([0.0, 0.0, 0.0, 1.0], (len(t), 1))
+    bend = np.stack([np.zeros_like(t), 0.1 * (t / t[-1]) ** 2, np.zeros_like(t)], 1)  # 0.1 m at the end
+    true = StampedTrajectory(t, true_p, q)
+    est = StampedTrajectory(t, 0.4 * (true_p + bend), q)
+    sim3 = trajectory_error(est, true, with_scale=True)
+    assert sim3.alignment_scale == pytest.approx(2.5, rel=1e-3)
+    assert 70.0 < sim3.drift_mm < 110.0, sim3
+    se3 = trajectory_error(est, true)
+    assert se3.drift_mm > 5000.0, se3
 
 
 def test_stamp_association_tolerance(
