@@ -131,6 +131,9 @@ class PathSpec(_S):
     # fraction of the row [start, end] each side covers (partial_overlap scenario)
     front_span: Range = (0.0, 1.0)
     back_span: Range = (0.0, 1.0)
+    # which way the back side is walked: "return" towards -x (round the row, as the front side came), or
+    # "same" towards +x like the front side (two passes started at the same row end)
+    back_direction: Literal["return", "same"] = "return"
     motion: MotionSpec = MotionSpec()  # walking / vehicle motion (handheld_walk, vehicle scenarios)
 
 

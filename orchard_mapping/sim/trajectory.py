@@ -106,8 +106,9 @@ def side_path(sc: Scenario, side: str, row_x: tuple[float, float], terrain: Terr
     xb = x_lo + span[1] * (x_hi - x_lo)
     sgn = -1.0 if side == "front" else 1.0  # camera on y = sgn * distance
     yaw = np.pi / 2 if side == "front" else -np.pi / 2
-    # The front side is walked towards +x, the back side towards -x (walking around the row).
-    start, end = (xa, xb) if side == "front" else (xb, xa)
+    # The front side is walked towards +x, the back side towards -x (walking around the row), or towards +x
+    # too (path.back_direction "same": both passes started at the same row end).
+    start, end = (xa, xb) if side == "front" or p.back_direction == "same" else (xb, xa)
 
     if p.mode == "loop":
         return _loop_path(sc, row_x, terrain, rng, t0, xa, xb)

@@ -51,6 +51,20 @@ def test_slope_weeds_has_more_weeds_and_steeper_ground():
     assert sw.terrain.slope > std.terrain.slope
 
 
+@pytest.mark.parametrize("direction, back_sign", [("return", -1.0), ("same", 1.0)])
+def test_back_side_walked_round_the_row_or_the_same_way(direction, back_sign):
+    """The level sweep of the front side moves towards +x; the back side's towards -x (round the row) or,
+    with path.back_direction "same", towards +x too; either way it still looks at the row (-y)."""
+    sc = load_scenario("standard", {**SMALL, "path.back_direction": direction})
+    scene = build_scene(sc, 0)
+    for side, sign, look in (("front", 1.0, 1.0), ("back", back_sign, -1.0)):
+        path = side_path(sc, side, scene.row_x, scene.terrain, np.random.default_rng(0), 0.0)
+        x = path.poses[:, 0, 3]
+        half = len(x) // 3  # within the level sweep
+        assert np.sign(x[half] - x[0]) == sign, (side, direction)
+        assert np.sign(path.poses[half, 1, 2]) == look  # optical axis (z) across the row, towards it
+
+
 def test_partial_overlap_side_spans_differ():
     sc = load_scenario("partial_overlap", SMALL)
     scene = build_scene(sc, 0)
