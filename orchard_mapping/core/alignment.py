@@ -158,10 +158,12 @@ def canonical_frame(points: np.ndarray, poses: np.ndarray, side: str, params: Al
     # Ground candidates: below the cameras (the canopy above them is never ground).
     below = thin[(thin - cam.mean(axis=0)) @ up0 < 0.0]
     # A whole side's ground undulates more than one tree's: a wider inlier band and more ground below
-    # the plane tolerated than for a local ground (with 3 cm / 5 %, a flat row's back side found none).
+    # the plane tolerated than for a local ground (with 3 cm / 5 %, a flat row's back side found none);
+    # one plane refitted over the whole side (a quadratic surface would bend with a long row's ground).
     gp = GroundParams(radius_m=1e9, max_height_above_trunk_bottom_m=1e9, inlier_threshold_m=0.05,
                       max_axis_angle_deg=params.ground_max_tilt_deg, max_below_fraction=0.2, iterations=500,
-                      min_points=50, refine_band_m=0.08, min_support_m2=0.0, wide_radius_m=0.0)
+                      min_points=50, refine_surface="plane", refine_band_m=0.08, refine_iterations=5,
+                      min_support_m2=0.0, wide_radius_m=0.0)
     fit = fit_local_ground(below, up0, cam.mean(axis=0), gp, rng)
     if fit is None:
         raise AlignmentError(f"{side}: no ground plane found within {params.ground_max_tilt_deg:g} deg "

@@ -90,3 +90,40 @@ def test_the_ground_says_how_far_from_the_trunk_it_was_seen():
     assert whole is not None and part is not None
     assert whole.support_offset_m < 0.05
     assert 0.3 < part.support_offset_m < 0.45  # the corner's centre lies ~0.37 m out
+
+
+def _undulating_ground(rng: np.random.Generator) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """(points (P, 3), normal (3,), point (3,) under the trunk) of the least-squares plane of the terrain
+    seen: ground that undulates as the simulator's slope_weeds rows do (5 waves of 1.3-2.5 m, 12 cm, and
+    fine roughness), seen over a little more than half of the 0.5 m disk round the trunk at (0, 0)."""
+    ang = rng.uniform(0, 2 * np.pi, 13)
+    wavelength = np.r_[1.8 * rng.uniform(0.7, 1.4, 5), rng.uniform(0.12, 0.35, 8)]
+    k = np.stack([np.cos(ang), np.sin(ang)], 1) * (2 * np.pi / wavelength)[:, None]  # (13, 2) rad/m
+    amp = np.r_[0.12 * rng.uniform(0.4, 1.0, 5) / np.sqrt(2.5), 0.015 * rng.uniform(0.5, 1.0, 8) / 2]
+    phase = rng.uniform(0, 2 * np.pi, 13)
+
+    def z(x: np.ndarray, y: np.ndarray) -> np.ndarray:
+        return 0.105 * x + 0.05 * y + np.sin(np.multiply.outer(x, k[:, 0]) + np.multiply.outer(y, k[:, 1]) + phase) @ amp
+
+    r, a = 0.5 * np.sqrt(rng.uniform(0, 1, 5000)), rng.uniform(-np.pi, 0.2, 5000)
+    xy = np.c_[r * np.cos(a), r * np.sin(a)]
+    (gx, gy, c), *_ = np.linalg.lstsq(np.c_[xy, np.ones(len(xy))], z(*xy.T), rcond=None)
+    n = np.array([-gx, -gy, 1.0])
+    return np.c_[xy, z(*xy.T) + rng.normal(0, 0.004, len(xy))], n / np.linalg.norm(n), np.array([0.0, 0.0, c])
+
+
+def test_undulating_ground_gives_the_plane_of_the_ground_seen():
+    """The local ground is the plane of the terrain the side saw; on ground that is not a plane over the
+    disk the RANSAC plane can be tangent to a part of it (7 deg off on two of these seeds) and a plane refitted within a band
+    of it keeps only a strip. The ground surface grown from it (a quadratic, then cell by cell) finds the
+    plane of all of it: 8 seeds, within the 1 deg goal on all but one, none beyond 3 deg."""
+    up = np.array([0.0, 0.0, 1.0])
+    params, plane_refit = GroundParams(), GroundParams(refine_surface="plane", refine_band_m=0.05, refine_iterations=5)
+    errors, plane_errors = [], []
+    for seed in range(8):
+        P, n_true, p_true = _undulating_ground(np.random.default_rng(seed))
+        for prm, out in ((params, errors), (plane_refit, plane_errors)):
+            fit = fit_local_ground(P, up, p_true, prm, np.random.default_rng(seed))
+            out.append(np.inf if fit is None else np.degrees(np.arccos(min(1.0, fit.normal @ n_true))))
+    assert sum(e <= 1.0 for e in errors) >= 7 and max(errors) < 3.0, errors
+    assert max(plane_errors) > 3.0, plane_errors  # the earlier refit, beside it
