@@ -78,10 +78,10 @@ class GroundParams:
     iterations: int = 1000
     min_points: int = 50  # fewer candidate points: no ground for this tree
     # The ground surface the plane is refitted to (see the module docstring): "quadratic", or "plane" (the
-    # earlier refit: least squares to the cells within refine_band_m of the plane itself). Measured on
-    # slope_weeds (10 trees, 12 cm undulation, weeds to 0.4 m; seeds 0 and 1, both sides, recorded ground
-    # candidates of the shipped pipeline, 5 RANSAC seeds each; benchmarks/trunks.py for the rows): see
-    # docs/results.md, "Local ground".
+    # earlier refit: least squares to the cells within refine_band_m of the plane itself). Measured on the
+    # ground candidates the pipeline hands to this fit on slope_weeds rows (12 cm undulation, weeds to
+    # 0.4 m), each refitted with several RANSAC seeds (benchmarks/ground.py), and on whole rows
+    # (benchmarks/trunks.py): docs/ground.md.
     refine_surface: Literal["quadratic", "plane"] = "quadratic"
     # m: cells within this of the ground surface are ground. 2 cm is ~2 sd of the fused cloud's ground at
     # 1.5-2 m plus the terrain's roughness; 3 cm let weed tops into the surface (more planes off by > 5 deg
