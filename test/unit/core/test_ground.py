@@ -79,7 +79,7 @@ def test_the_ground_says_how_far_from_the_trunk_it_was_seen():
     a corner of the disk (its height at the trunk is then an extrapolation the merge weighs less)."""
     rng = np.random.default_rng(0)
     axis, base = np.array([0.0, 0.0, 1.0]), np.zeros(3)
-    params = GroundParams()
+    params = GroundParams(min_support_m2=0.05)  # the corner patch is ~0.09 m^2
     r, ph = 0.5 * np.sqrt(rng.uniform(0, 1, 4000)), rng.uniform(0, 2 * np.pi, 4000)
     xy = np.c_[r * np.cos(ph), r * np.sin(ph)]
     disk = np.c_[xy, _ground_z(*xy.T) + rng.normal(0, 0.004, len(xy))]
