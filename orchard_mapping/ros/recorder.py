@@ -13,9 +13,11 @@ from __future__ import annotations
 
 import argparse
 import sys
+import time
 from collections import Counter
 from pathlib import Path
 
+import rclpy
 from rclpy.node import Node
 from rclpy.utilities import remove_ros_args
 from rclpy.qos import DurabilityPolicy, QoSProfile, ReliabilityPolicy
@@ -26,6 +28,8 @@ from orchard_mapping.ros.player import message_class
 from orchard_mapping.ros.spin import run_node
 
 __all__ = ["Recorder", "main"]
+
+DRAIN_AT_MOST_S = 5.0  # s, taking what arrived before the stop
 
 
 class Recorder(Node):
@@ -76,7 +80,22 @@ class Recorder(Node):
             return
         self.received[topic] += 1
 
+    def _drain(self, quiet_s: float = 0.3, at_most_s: float = DRAIN_AT_MOST_S) -> None:
+        """At the stop, take what already arrived (behind a large side map the executor may be seconds
+        behind: the graph stops when its last node finishes, not when the recorder caught up) until nothing
+        came for quiet_s, for at most at_most_s."""
+        end = time.monotonic() + at_most_s
+        try:
+            while time.monotonic() < end:
+                before = sum(self.received.values())
+                rclpy.spin_once(self, timeout_sec=quiet_s)
+                if sum(self.received.values()) == before:
+                    return
+        except Exception as err:  # noqa: BLE001 - a context already shut down (SIGINT): nothing more to take
+            self.get_logger().debug(f"recorder drain stopped: {err}")
+
     def close(self) -> None:
+        self._drain()
         self.writer.close()
         self.get_logger().info(f"recorded {sum(self.received.values())} messages on {len(self.received)} topics "
                                f"to {self.writer.path}")

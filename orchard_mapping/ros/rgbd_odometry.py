@@ -40,6 +40,7 @@ import numpy as np
 from geometry_msgs.msg import PoseStamped
 from nav_msgs.msg import Odometry, Path as PathMsg
 from orchard_mapping_msgs.msg import LocalGroundArray, SideMap as SideMapMsg, TrunkCylinderArray
+from rclpy.duration import Duration
 from rclpy.node import Node
 from sensor_msgs.msg import CameraInfo, Image, PointCloud2
 from std_msgs.msg import String
@@ -62,6 +63,8 @@ from orchard_mapping.ros.spin import StopNode, run_node
 from orchard_mapping.ros.tf import Transforms, transform_msg
 
 __all__ = ["RGBDOdometryNode", "main"]
+
+STATUS_ACK_TIMEOUT_S = 2.0  # s, at most this long at the stop for the last status to be acknowledged
 
 
 def _pose(msg_pose, T: np.ndarray) -> None:
@@ -399,6 +402,13 @@ class RGBDOdometryNode(Node):
         self._work.put(("stop", None))
         for t in self._threads:
             t.join(timeout=600)
+        # The last status (a side finished) is published just before the node stops: wait until the
+        # subscribers (the recorder) acknowledged it, or a recording of a replay may end one status short
+        # (CI, stop 26: `finished` without the last side).
+        try:
+            self._status.wait_for_all_acked(Duration(seconds=STATUS_ACK_TIMEOUT_S))
+        except Exception as err:  # noqa: BLE001 - a context already shut down: nothing left to wait for
+            self.get_logger().debug(f"status not acknowledged: {err}")
 
 
 def main(argv: list[str] | None = None) -> int:
