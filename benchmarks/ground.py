@@ -139,6 +139,7 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--json", type=Path)
     args = ap.parse_args(argv)
 
+    fits = methods()
     rows = []
     for sc in args.scenarios:
         for seed in args.seeds:
@@ -149,11 +150,11 @@ def main(argv: list[str] | None = None) -> int:
                 rec = record_side(sim_dir, side, case_dir / f"ground_calls_{side}.pkl", args.reuse)
                 calls = link_to_truth(sim_dir, side, rec)
                 rows.append({"scenario": sc, "seed": seed, "side": side, "trees_with_seen_ground": len(calls),
-                             "methods": {name: score(calls, fn, args.draws) for name, fn in methods().items()}})
+                             "methods": {name: score(calls, fn, args.draws) for name, fn in fits.items()}})
 
     table = Table(title=f"local ground per tree, {args.trees} trees, {args.rate:g} Hz, {args.draws} RANSAC draws: "
                         f"fits within 1 deg & 1 cm | within 2 deg & 2 cm | off > 5 deg or 3 cm | none, median/max deg")
-    names = list(methods())
+    names = list(fits)
     for col in ("row, seed, side", "trees", *names):
         table.add_column(col)
     for r in rows:

@@ -15,10 +15,10 @@ paper changes RANSAC's degenerate condition with the trunk axis as a prior:
 Real ground is not a plane (undulation, roughness), and the tree's local ground is the plane of the
 terrain the side saw around it. So the RANSAC plane only seeds the ground *surface*: a quadratic surface
 fitted to the lower-envelope cells (the lowest point of each 4 cm cell), cells more than `refine_band_m`
-above it left out (weeds, leaves) and cells below kept (the ground is the lower boundary), iterated. The
-reported plane is the least-squares plane through the cells within `refine_band_m` of that surface; a
-plane with less than `min_support_m2` of such ground is not reported (a glimpse of ground between weeds
-fixes no tilt). `fit_local_ground` does this; `fit_plane_plain_ransac` (Open3D's
+above it left out (weeds, leaves) and cells below kept (the ground is the lower boundary), iterated, then
+grown cell by cell into neighbours that follow the ground beside them. The reported plane is the
+least-squares plane through those ground cells (robustly trimmed); a plane with less than
+`min_support_m2` of such ground is not reported (a glimpse of ground between weeds fixes no tilt). `fit_local_ground` does this; `fit_plane_plain_ransac` (Open3D's
 `segment_plane`) is kept as the baseline the paper compares with. Frames: all
 points and vectors in the side's reconstruction frame (odom_<side>), metres.
 """
@@ -31,6 +31,7 @@ from typing import Literal
 import numpy as np
 from scipy.spatial import cKDTree
 
+from orchard_mapping.core.cylinder import perpendicular_basis
 from orchard_mapping.errors import OrchardMappingError
 
 __all__ = [
@@ -170,9 +171,7 @@ def _refine(points: np.ndarray, normal: np.ndarray, offset: float, t: float) -> 
 
 def _lower_envelope(pts: np.ndarray, up: np.ndarray, cell_m: float) -> np.ndarray:
     """Indices of the lowest point (along `up`) of each cell_m square cell across `up`."""
-    e1 = np.cross(up, [1.0, 0.0, 0.0] if abs(up[0]) < 0.9 else [0.0, 1.0, 0.0])
-    e1 /= np.linalg.norm(e1)
-    e2 = np.cross(up, e1)
+    e1, e2 = perpendicular_basis(up)
     cells = np.floor(np.stack([pts @ e1, pts @ e2], 1) / cell_m).astype(np.int64)  # (P, 2)
     order = np.lexsort((pts @ up, cells[:, 1], cells[:, 0]))  # by cell, then height
     c = cells[order]
@@ -194,9 +193,7 @@ def _ground_cells(envelope: np.ndarray, n: np.ndarray, d0: float, origin: np.nda
        quadratic. Weed tops stand off the ground next to them and are not reached. (Simulated undulating
        ground without weeds, 12 seeds: worst normal error 7.7 -> 2.5 deg; the slope_weeds rows alike.)
     """
-    e1 = np.cross(n, [1.0, 0.0, 0.0] if abs(n[0]) < 0.9 else [0.0, 1.0, 0.0])
-    e1 /= np.linalg.norm(e1)
-    e2 = np.cross(n, e1)
+    e1, e2 = perpendicular_basis(n)
     rel = envelope - origin
     u, v, h = rel @ e1, rel @ e2, envelope @ n + d0  # (C,) each
     A = np.stack([np.ones_like(u), u, v, u * u, u * v, v * v], 1)  # (C, 6)
