@@ -2,7 +2,7 @@
 
 For each scenario: simulate a row (or reuse it), reconstruct both sides with their trunks once (the
 default configuration: trunks from the shipped detector), then merge them with each `merge.method`
-(semantic_ba, initial, icp) and print one table: time per step, trunk pairs, the gap between the two
+(semantic_ba, the same without the trellis posts, initial, icp) and print one table: time per step, trunk pairs, the gap between the two
 sides' trunk axes at the diameter height (median / max), the rigid merge error against the truth at
 the trunk bases (rotation, mean translation), the merged map's error (eval.metrics.map_merge_error) with
 all keyframes and with each side's trunk-seeing sweep only (on a two-sweep path the raised sweep sees no
@@ -48,7 +48,9 @@ from orchard_mapping.pipeline import Timings, map_poses, merge_sides, open_sides
 from orchard_mapping.sim.scenario import load_scenario  # noqa: E402
 from orchard_mapping.sim.simulate import simulate  # noqa: E402
 
-METHODS = ("semantic_ba", "initial", "icp")
+METHODS = ("semantic_ba", "semantic_ba_no_posts", "initial", "icp")
+# method label -> config overrides (a label that is not a merge.method is a variant of one)
+VARIANTS = {"semantic_ba_no_posts": {"merge": {"method": "semantic_ba"}, "semantic_ba": {"use_posts": False}}}
 
 
 def _sides(sim_dir: Path, reuse: bool, masks: bool = False) -> dict[str, Any]:
@@ -169,7 +171,7 @@ def _tiled(sides: dict[str, Any], gt: Any, copies: int) -> tuple[dict[str, Any],
 
 
 def _score(method: str, sides: dict[str, Any], gt: Any) -> dict[str, Any]:
-    cfg = load_config(overrides={"merge": {"method": method}})
+    cfg = load_config(overrides=VARIANTS.get(method, {"merge": {"method": method}}))
     t0 = time.perf_counter()
     m = merge_sides(sides["front"], sides["back"], cfg)
     seconds = time.perf_counter() - t0

@@ -35,7 +35,8 @@ from orchard_mapping.core.sidemap import FrontEndResult, LoopClosure, SideMap
 from orchard_mapping.core.sides import UTurnSides
 from orchard_mapping.core.cylinder import Cylinder
 from orchard_mapping.core.trunks import TrunkLandmark, TrunkView, build_trunk_landmarks, ground_around_trunk
-from orchard_mapping.core.detection import CLASS_TRUNK
+from orchard_mapping.core.detection import CLASS_POST, CLASS_TRUNK
+from orchard_mapping.core.posts import PostObservation, build_post_landmarks, fit_post_view, post_shapes
 from orchard_mapping.core.types import CameraIntrinsics, ImagePatch, RGBDFrame, StampedTrajectory
 from orchard_mapping.errors import AlignmentError, BagError, BagFormatError, MergeRefusedError
 from orchard_mapping.io.bags import RGBDSequence, read_rgbd
@@ -280,14 +281,20 @@ def finish_side(job: SideHandover, timings: Timings, detect: Detect | None = Non
     points = np.zeros((0, 3), np.float32)
     colors = np.zeros((0, 3), np.uint8)
     trunks: list[TrunkLandmark] = []
+    posts: list = []
     stamps = np.array([k.stamp for k in fe.keyframes])
     if cfg.input.mode == "rgbd":
         t0 = time.perf_counter()
-        views = TrunkViews(cfg, side, stamps, ba.poses, detect=detect)
+        views = TrunkViews(cfg, side, stamps, ba.poses, detect=detect, intr=intr)
         fused = fuse_keyframes(job.images, [k.frame_index for k in fe.keyframes], ba.poses, intr, cfg, views)
         points, colors = fused.points, fused.colors
-        timings.add(f"fusion_{side}", time.perf_counter() - t0 - views.seconds)
+        timings.add(f"fusion_{side}", time.perf_counter() - t0 - views.seconds - views.post_seconds)
         timings.add(f"trunk_detection_{side}", views.seconds)
+        if views.posts:
+            t0 = time.perf_counter()
+            posts = build_post_landmarks(views.posts, ba.poses)
+            timings.add(f"posts_{side}", views.post_seconds + time.perf_counter() - t0)
+            log.info("%s: %d trellis posts from %d post views", side, len(posts), len(views.posts))
         if cfg.trunks.source != "off":
             t0 = time.perf_counter()
             trunks = build_trunk_landmarks(points, ba.poses, views.views, intr, cfg.trunks, cfg.ground,
@@ -310,6 +317,7 @@ def finish_side(job: SideHandover, timings: Timings, detect: Detect | None = Non
         scale_free=cfg.input.mode == "rgb",
         odometry_poses=odometry,
         trunks=trunks,
+        posts=posts,
     )
 
 
@@ -413,16 +421,20 @@ class TrunkViews:
     seen, not with the row's frames."""
 
     def __init__(self, cfg: OrchardConfig, side: str, stamps: np.ndarray, poses: np.ndarray,
-                 detect: Detect | None = None) -> None:
-        self.cfg, self.stamps, self.poses = cfg, stamps, poses
+                 detect: Detect | None = None, intr: CameraIntrinsics | None = None) -> None:
+        self.cfg, self.stamps, self.poses, self.intr = cfg, stamps, poses, intr
         self.detect = None if cfg.trunks.source == "off" else (detect or trunk_detector(cfg, side))
         self.unavailable: list[int] = []  # keyframes the detector could not answer for
         self.views: list[TrunkView] = []
         self.seconds = 0.0  # s spent in the detector and cropping
+        self.post_seconds = 0.0  # s spent fitting posts
         self._last: np.ndarray | None = None
         self._detections: dict[int, list] = {}  # keyframe -> its trunk detections, until it is cleaned
+        self.posts: list[PostObservation] = []  # each post detection's own fit (core/posts.py), raw depth
+        self._up = -poses[0][:3, 1] if len(poses) else np.array([0.0, -1.0, 0.0])  # odom: the first camera's up
+        self._rng = np.random.default_rng(cfg.seed)
 
-    def select(self, k: int, color: np.ndarray) -> bool:
+    def select(self, k: int, color: np.ndarray, depth: np.ndarray | None = None) -> bool:
         if self.detect is None:
             return False
         c = self.poses[k][:3, 3]
@@ -435,6 +447,15 @@ class TrunkViews:
         if found is None:
             self.unavailable.append(k)
             return False
+        if depth is not None and self.intr is not None and self.cfg.semantic_ba.use_posts:
+            # A post is fitted from this frame's raw depth at once: its observation needs no cleaned depth
+            # (RANSAC and the Huber refit reject stray pixels), so a frame with posts only is not cleaned.
+            t0 = time.perf_counter()
+            up_cam = self.poses[k][:3, :3].T @ self._up
+            for d in found:
+                if d.class_id == CLASS_POST and (obs := fit_post_view(depth, d.mask, self.intr, up_cam, k, self._rng)):
+                    self.posts.append(obs)
+            self.post_seconds += time.perf_counter() - t0
         dets = [d for d in found if d.class_id == CLASS_TRUNK]
         if dets:
             self._detections[k] = dets
@@ -601,9 +622,11 @@ def merge_sides(front: SideMap, back: SideMap, cfg: OrchardConfig) -> MergeOutco
     if cfg.merge.method == "semantic_ba":
         t0 = time.perf_counter()
         h = cfg.trunks.diameter_height_m
-        shapes = (SideShapes(front.keyframe_poses, _trunk_shapes(front, [i for i, _ in al.pairs], np.eye(4), h)),
-                  SideShapes(it.T_front_back[None] @ back.keyframe_poses,
-                             _trunk_shapes(back, [j for _, j in al.pairs], it.T_front_back, h)))
+        back_poses = it.T_front_back[None] @ back.keyframe_poses
+        posts = post_shapes([(front.posts, front.keyframe_poses), (back.posts, back_poses)])
+        shapes = (SideShapes(front.keyframe_poses, _trunk_shapes(front, [i for i, _ in al.pairs], np.eye(4), h),
+                             posts[0]),
+                  SideShapes(back_poses, _trunk_shapes(back, [j for _, j in al.pairs], it.T_front_back, h), posts[1]))
         sba = semantic_bundle_adjust(*shapes, cfg.semantic_ba)
         seconds["semantic_ba"] = time.perf_counter() - t0
     return MergeOutcome(cfg.merge.method, it.T_front_back, al.pairs, al, it, sba, shapes, seconds)

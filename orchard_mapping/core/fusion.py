@@ -468,7 +468,7 @@ class FusionParams:
 # keyframe's depth is cleaned, so the caller can use it and let it go (the streaming pipeline).
 OnCleaned = Callable[[int, np.ndarray, "np.ndarray | None"], None]
 # Called with (keyframe position, colour (H, W, 3) uint8) as a keyframe comes due for cleaning: False skips it.
-Select = Callable[[int, np.ndarray], bool]
+Select = Callable[[int, np.ndarray, np.ndarray], bool]  # (position, colour, raw depth) -> clean it?
 
 
 def fuse_side(frames: Iterable[tuple[np.ndarray, np.ndarray, np.ndarray]], intr: CameraIntrinsics, *,
@@ -500,7 +500,7 @@ def fuse_side(frames: Iterable[tuple[np.ndarray, np.ndarray, np.ndarray]], intr:
     keep_color: also keep the colour image of every cleaned keyframe (for the trunk detector; ~1 MB each).
     on_cleaned: when given, each cleaned keyframe is handed to it (in order) instead of being kept in
     the result (cleaned_depth and cleaned_color come back empty).
-    select: when given, called with (position, colour) as each keyframe comes due for cleaning; a keyframe
+    select: when given, called with (position, colour, raw depth) as each keyframe comes due for cleaning; a keyframe
     it refuses is not cleaned (the pipeline cleans only the keyframes with a trunk detection in them).
     """
     t_start = time.perf_counter()
@@ -582,7 +582,7 @@ def fuse_side(frames: Iterable[tuple[np.ndarray, np.ndarray, np.ndarray]], intr:
         if (key_set is None or i in key_set) and (
                 last_cleaned is None or np.linalg.norm(here - last_cleaned) >= cleaned_spacing_m):
             last_cleaned = here
-            if select is None or select(i, np.asarray(color)):
+            if select is None or select(i, np.asarray(color), d):
                 pending.append((i, d, np.asarray(color) if keep_color else None, Tc))
         if mode == "local":
             kept.append((d, np.asarray(color), Tc))

@@ -23,16 +23,16 @@ optical frame, metres, radians inside GTSAM.
 from __future__ import annotations
 
 import logging
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 
 import gtsam
 import numpy as np
-from gtsam.symbol_shorthand import B, F, G, T
+from gtsam.symbol_shorthand import B, F, G, P, T
 
 from orchard_mapping.core.bundle_adjustment import optimise_in_steps
 from orchard_mapping.errors import AlignmentError
 
-__all__ = ["SemanticBAParams", "SideShapes", "SemanticBAResult", "TrunkShape", "semantic_bundle_adjust",
+__all__ = ["PostShape", "SemanticBAParams", "SideShapes", "SemanticBAResult", "TrunkShape", "semantic_bundle_adjust",
            "trunk_frame"]
 
 logger = logging.getLogger(__name__)
@@ -62,6 +62,14 @@ class SemanticBAParams:
     ground_sigma_offset_m: float = 0.01
     huber_k: float = 1.345
     max_iterations: int = 50
+    # Trellis posts (core/posts.py): one keyframe per pass by a post measures it, as a trunk is measured
+    # (heading free), from that frame's depth alone. They tie a side's raised sweep, which sees no trunk,
+    # to its level sweep. One view's axis: 0.7 / 4 mm median off the truth (level / raised views,
+    # standard row, exact masks), tilt 0.1 / 0.5 deg.
+    use_posts: bool = True
+    post_sigma_across_m: float = 0.005
+    post_sigma_along_m: float = 0.5  # the two passes see different stretches of the post
+    post_sigma_tilt_deg: float = 1.0
 
 
 @dataclass(frozen=True)
@@ -78,9 +86,20 @@ class TrunkShape:
 
 
 @dataclass(frozen=True)
+class PostShape:
+    """One pass's view of a trellis post: its frame in one keyframe's camera (origin on the axis at the
+    post's reference point, shared by every view of that post; z along the axis)."""
+
+    post: int  # the post's index: the same post in every view, either side
+    keyframe: int  # index into that side's poses
+    T_cam_post: np.ndarray  # (4, 4)
+
+
+@dataclass(frozen=True)
 class SideShapes:
     poses: np.ndarray  # (K, 4, 4) T_map_cam, initial (the back side already moved by the initial transform)
     trunks: list[TrunkShape]
+    posts: list[PostShape] = field(default_factory=list)
 
     def trunk(self, tree: int) -> TrunkShape:
         """This side's view of `tree`."""
@@ -178,6 +197,7 @@ def semantic_bundle_adjust(front: SideShapes, back: SideShapes, params: Semantic
         graph.add(gtsam.OrientedPlane3Factor(np.asarray(other.ground_cam, float), plane_noise, B(other.keyframe),
                                              G(t.tree)))
         grounds.add(t.tree)
+    n_posts = _add_posts(graph, values, front, back, params, huber) if params.use_posts else 0
     before = _trunks_in_map(front, back, front.poses, back.poses)
     lm = gtsam.LevenbergMarquardtParams()
     lm.setMaxIterations(params.max_iterations)
@@ -188,8 +208,9 @@ def semantic_bundle_adjust(front: SideShapes, back: SideShapes, params: Semantic
     fp = np.array([result.atPose3(F(k)).matrix() for k in range(len(front.poses))])
     bp = np.array([result.atPose3(B(k)).matrix() for k in range(len(back.poses))])
     after = _trunks_in_map(front, back, fp, bp)
-    logger.info("semantic BA: %d + %d keyframes, %d trunks, %d grounds; error %.1f -> %.1f in %d iterations; "
-                "trunk axis gap median %.1f -> %.1f mm", len(fp), len(bp), len(shared), len(grounds), e0, e1,
+    logger.info("semantic BA: %d + %d keyframes, %d trunks, %d grounds, %d posts; error %.1f -> %.1f in %d "
+                "iterations; trunk axis gap median %.1f -> %.1f mm", len(fp), len(bp), len(shared), len(grounds),
+                n_posts, e0, e1,
                 opt.iterations(), np.median(list(before.values())), np.median(list(after.values())))
     return SemanticBAResult(fp, bp, {k: result.atPose3(T(k)).matrix() for k in sorted(shared)}, before, after,
                             float(e0), float(e1), int(opt.iterations()))
@@ -200,3 +221,26 @@ def _plane_in_map(plane_cam: np.ndarray, T_map_cam: np.ndarray) -> tuple[np.ndar
     R, t = T_map_cam[:3, :3], T_map_cam[:3, 3]
     n = R @ plane_cam[:3]
     return n, float(plane_cam[3] - n @ t)
+
+
+def _add_posts(graph: gtsam.NonlinearFactorGraph, values: gtsam.Values, front: SideShapes, back: SideShapes,
+               params: SemanticBAParams, huber: gtsam.noiseModel.mEstimator.Huber) -> int:
+    """One Pose3 per post seen in two or more passes (either side), measured from each pass's keyframe
+    like a trunk (heading free, loose along the axis). Returns the number of posts added."""
+    noise = gtsam.noiseModel.Robust.Create(huber, gtsam.noiseModel.Diagonal.Sigmas(np.array(
+        [np.radians(params.post_sigma_tilt_deg)] * 2 + [10.0]
+        + [params.post_sigma_across_m] * 2 + [params.post_sigma_along_m])))
+    views: dict[int, list[tuple[object, SideShapes, PostShape]]] = {}
+    for sym, side in ((F, front), (B, back)):
+        for p in side.posts:
+            views.setdefault(p.post, []).append((sym, side, p))
+    n = 0
+    for post, vs in sorted(views.items()):
+        if len(vs) < 2:
+            continue
+        sym, side, p = vs[0]
+        values.insert(P(post), gtsam.Pose3(side.poses[p.keyframe] @ p.T_cam_post))
+        for sym, side, p in vs:
+            graph.add(gtsam.BetweenFactorPose3(sym(p.keyframe), P(post), gtsam.Pose3(p.T_cam_post), noise))
+        n += 1
+    return n

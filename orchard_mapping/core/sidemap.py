@@ -83,3 +83,5 @@ class SideMap:
     odometry_poses: np.ndarray | None = None  # (K, 4, 4) front-end keyframe poses, before loop closure and BA
     # trunk landmarks with their local grounds (core.trunks.TrunkLandmark), when trunks.source is not "off"
     trunks: list = field(default_factory=list)
+    # trellis posts seen (core.posts.PostLandmark): they tie the side's sweeps in the semantic BA
+    posts: list = field(default_factory=list)

@@ -22,6 +22,7 @@ import numpy as np
 from orchard_mapping.core.cylinder import Cylinder, CylinderFit, CylinderView
 from orchard_mapping.core.detection import Detection
 from orchard_mapping.core.ground import LocalGroundFit
+from orchard_mapping.core.posts import PostLandmark, PostObservation
 from orchard_mapping.core.sidemap import LoopClosure, Observations, SideMap
 from orchard_mapping.core.trunks import TrunkLandmark, TrunkObservation
 from orchard_mapping.core.types import CameraIntrinsics, ImagePatch
@@ -33,7 +34,7 @@ SIDE_MAP_ENCODING = "orchard_mapping.side_map/1+npz"
 
 _TYPES = {cls.__name__: cls for cls in (SideMap, CameraIntrinsics, Observations, LoopClosure, TrunkLandmark,
                                         TrunkObservation, Detection, Cylinder, CylinderFit, CylinderView,
-                                        LocalGroundFit, ImagePatch)}
+                                        LocalGroundFit, ImagePatch, PostLandmark, PostObservation)}
 _TREE = "__tree__"
 
 

@@ -374,7 +374,7 @@ def test_volume_moves_on_where_no_keyframe_is_cleaned(row, accuracy):
     the blocks the camera left behind: the volume's size does not grow with the stretch's length."""
     kw = dict(keyframes=row.keyframes, depth_max_m=1.5, clean_after_m=0.5, clean_batch_m=0.25)
     whole = fuse_side(row.frames(), row.intr, **{**kw, "clean_after_m": 100.0, "clean_batch_m": 100.0})
-    res = fuse_side(row.frames(), row.intr, select=lambda k, color: False, **kw)
+    res = fuse_side(row.frames(), row.intr, select=lambda k, color, depth: False, **kw)
     assert not res.cleaned_depth and res.blocks_retired > 0
     accuracy.at_most("blocks held with nothing to clean / one volume's", res.peak_blocks / whole.peak_blocks, 0.75)
     accuracy.at_most("nothing to clean: points / one volume's points, deviation",
