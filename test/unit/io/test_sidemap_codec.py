@@ -11,6 +11,7 @@ import pytest
 from orchard_mapping.core.cylinder import Cylinder, CylinderFit, CylinderView
 from orchard_mapping.core.detection import Detection
 from orchard_mapping.core.ground import LocalGroundFit
+from orchard_mapping.core.posts import PostLandmark, PostObservation
 from orchard_mapping.core.sidemap import LoopClosure, Observations, SideMap
 from orchard_mapping.core.trunks import TrunkLandmark, TrunkObservation
 from orchard_mapping.core.types import CameraIntrinsics, ImagePatch
@@ -47,7 +48,10 @@ def _side_map(rng: np.random.Generator) -> SideMap:
         loops=[LoopClosure(0, 4, np.eye(4), 40, 0.7)],
         cloud_points=rng.normal(size=(100, 3)).astype(np.float32),
         cloud_colors=rng.integers(0, 255, (100, 3), dtype=np.uint8),
-        odometry_poses=poses.copy(), trunks=[lm])
+        odometry_poses=poses.copy(), trunks=[lm],
+        posts=[PostLandmark(0, np.array([1.0, 0.5, 2.0]), 0.049, [PostObservation(
+            3, np.array([0.0, -1.0, 0.0]), np.array([0.2, 0.1, 2.0]), 0.047, 1.2, 800,
+            rng.normal(size=(20, 3)).astype(np.float32))])])
 
 
 def _same(a, b, at: str = "side_map") -> None:
