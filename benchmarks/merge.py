@@ -102,14 +102,14 @@ def _shift_transform(T: np.ndarray, d: np.ndarray) -> np.ndarray:
 
 def _tiled_side(sm: Any, copies: int, shift: np.ndarray, diameter_offset: np.ndarray) -> Any:
     """The side map of a row `copies` times as long: the reconstructed side repeated every `shift` (3,) m
-    (odom), keyframes, cloud and trunks (with their grounds, band points and views) moved along. What the
+    (odom), keyframes, cloud, trunks (with their grounds, band points and views) and posts moved along. What the
     merge reads, not what a longer recording would give (the copies' drifts repeat): for its time and
     memory on long rows without rendering them. diameter_offset (copies, T) m is added to each copy's
     trunk diameters: exact copies would pair as well one copy off as in place (the alignment tells trees
     apart by their diameters, as in a real row)."""
     K, n = len(sm.keyframe_poses), len(sm.trunks)
     dur = float(sm.keyframe_stamps[-1] - sm.keyframe_stamps[0]) + 1.0
-    poses, stamps, clouds, colours, trunks = [], [], [], [], []
+    poses, stamps, clouds, colours, trunks, posts = [], [], [], [], [], []
     for c in range(copies):
         d = c * shift
         poses.append(_shift_transform(sm.keyframe_poses, d))
@@ -130,9 +130,11 @@ def _tiled_side(sm: Any, copies: int, shift: np.ndarray, diameter_offset: np.nda
                 band_points=None if t.band_points is None else t.band_points + d,
                 band_views=[dataclasses.replace(v, T_odom_cam=_shift_transform(v.T_odom_cam, d)) for v in t.band_views],
                 observations=[dataclasses.replace(o, keyframe=o.keyframe + c * K) for o in t.observations]))
+        posts += [dataclasses.replace(p, id=p.id + c * len(sm.posts), place=p.place + d, observations=[
+            dataclasses.replace(o, keyframe=o.keyframe + c * K) for o in p.observations]) for p in sm.posts]
     return dataclasses.replace(sm, keyframe_poses=np.concatenate(poses), keyframe_stamps=np.concatenate(stamps),
                                cloud_points=np.concatenate(clouds), cloud_colors=np.concatenate(colours),
-                               trunks=trunks,
+                               trunks=trunks, posts=posts,
                                odometry_poses=None if sm.odometry_poses is None else np.concatenate(
                                    [_shift_transform(sm.odometry_poses, c * shift) for c in range(copies)]))
 
