@@ -14,6 +14,9 @@ them. Here the same coupling is built from GTSAM's built-in factors on each side
   ground), tight across it and in tilt: the two halves of a trunk must share one axis;
 - each tree with a local ground on both sides is one OrientedPlane3 variable, measured from the same
   keyframes (OrientedPlane3Factor);
+- each trellis post seen in two or more passes of a side (core/posts.py) is one Pose3 too, measured
+  like a trunk from one keyframe per pass: it ties a side's raised sweep, which sees no trunk, to its
+  level sweep (a 30-tree row: merged map 0.38 -> 0.04 deg);
 - gauge: a prior on the first front keyframe (map = odom_front).
 
 Levenberg-Marquardt with Huber-robust semantic factors. Frames: poses T_map_cam of the colour
