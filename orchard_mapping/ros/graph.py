@@ -67,7 +67,9 @@ def graph_specs(bags: list[Path], *, rate: float = 1.0, start_s: float = 0.0, lo
                                   ends_graph=not loop))
         specs.append(NodeSpec("rgbd_odometry", "rgbd_odometry", tuple(odometry), ends_graph=not loop and not two,
                               finite=two))
-        player = [str(b) for b in bags] + ["--rate", str(rate), "--start", str(start_s)]
+        # the odometry node's own readers, not the recorder's, must have matched before the first frame
+        player = [str(b) for b in bags] + ["--rate", str(rate), "--start", str(start_s),
+                                           "--wait-reader", "rgbd_odometry"]
         if two:  # the side merger and the trait reporter have started (imported the core) before the first frame
             player += ["--wait-node", "side_merger", "--wait-node", "trait_reporter"]
         player += [a for s in (sides or []) for a in ("--side", s)]

@@ -8,15 +8,16 @@ Which side each bag records: a bag that carries the side topic (`/orchard/side`)
 otherwise `--side front --side back` (one per bag) publishes the side when its bag starts. After each
 bag the side `end` is published: the odometry node finishes a side when the side changes or ends.
 
-Before the first message the player waits (up to `--wait`) until every camera topic has a subscriber,
-so the first frames are not lost to discovery (0.1-3 s on loopback, measured), and until each node of
+Before the first message the player waits (up to `--wait`) until every camera topic has a subscriber
+(with `--wait-reader NAME`, a subscription of that node: a recorder's does not count), so the first frames are not lost to discovery (0.1-3 s on loopback, measured), and until each node of
 `--wait-node` is in the graph: the graph's other nodes, whose start (importing the core: seconds of both
 cores) would otherwise starve the odometry node of the first frames (24 of 462 lost on the 2-tree test row). With `--stats FILE` it
 writes, when done, the number of messages published per topic and the replay's wall and log time
 (atomically, JSON), which a benchmark compares with what the nodes processed.
 
 Usage: python -m orchard_mapping.ros.player BAG [BAG ...] [--rate R] [--start S] [--loop]
-           [--side front --side back] [--wait S] [--wait-node NAME ...] [--stats FILE]
+           [--side front --side back] [--wait S] [--wait-node NAME ...] [--wait-reader NAME ...]
+           [--stats FILE]
 """
 
 from __future__ import annotations
@@ -90,18 +91,29 @@ class BagPlayer(Node):
                 if topic != topics.side and topic not in self._pubs:
                     self._pubs[topic] = self.create_publisher(message_class(msgtype), topic, REPLAY)
 
-    def wait_for_subscribers(self, timeout_s: float, nodes: tuple[str, ...] = ()) -> bool:
-        """Spin until each camera topic has a subscriber and each node named in `nodes` is up (True), or
-        timeout_s passes (False)."""
+    def wait_for_subscribers(self, timeout_s: float, nodes: tuple[str, ...] = (),
+                             readers: tuple[str, ...] = ()) -> bool:
+        """Spin until each camera topic has a subscriber (of each node named in `readers`, when given) and
+        each node named in `nodes` is up (True), or timeout_s passes (False).
+
+        `readers`: any subscriber is not enough where a recorder also listens: it may match first, and a
+        frame sent before the odometry node's own reader matched is lost to it (in one CI run of many the
+        odometry node's CameraInfo reader had not matched when the frames began, and it refused both
+        sides: "no CameraInfo received before the first frame")."""
         wanted = [t for t in (self.topics.color, self.topics.depth, self.topics.camera_info) if t in self._pubs]
         if any(self.sides):
             wanted.append(self.topics.side)
         deadline = time.monotonic() + timeout_s
         while time.monotonic() < deadline:
-            if all(self.count_subscribers(t) > 0 for t in wanted) and set(nodes) <= set(self.get_node_names()):
+            if all(self._has_readers(t, readers) for t in wanted) and set(nodes) <= set(self.get_node_names()):
                 return True
             rclpy.spin_once(self, timeout_sec=0.05)
         return False
+
+    def _has_readers(self, topic: str, readers: tuple[str, ...]) -> bool:
+        if not readers:
+            return self.count_subscribers(topic) > 0
+        return set(readers) <= {info.node_name for info in self.get_subscriptions_info_by_topic(topic)}
 
     def _pause(self, seconds: float) -> None:
         end = time.monotonic() + seconds
@@ -157,6 +169,8 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--side", action="append", choices=("front", "back"), help="the side each bag records")
     ap.add_argument("--wait", type=float, default=20.0, help="s to wait for subscribers to the camera topics")
     ap.add_argument("--wait-node", action="append", default=[], help="also wait until this node is up")
+    ap.add_argument("--wait-reader", action="append", default=[],
+                    help="wait until this node subscribes to every camera topic (not just any subscriber)")
     ap.add_argument("--stats", type=Path, help="write what was published (JSON) here when done")
     # `ros2 run` / `ros2 launch` append --ros-args ...: those are rclpy's (rclpy.init reads them), not ours
     args = ap.parse_args(remove_ros_args(["prog", *(sys.argv[1:] if argv is None else argv)])[1:])
@@ -167,8 +181,9 @@ def main(argv: list[str] | None = None) -> int:
         except (BagError, PlayerError) as err:
             print(f"bag_player: {err}", file=sys.stderr)
             return 2
-        if not player.wait_for_subscribers(args.wait, tuple(args.wait_node)):
-            player.get_logger().warning(f"no subscriber to the camera topics (or not all of {args.wait_node}) after "
+        if not player.wait_for_subscribers(args.wait, tuple(args.wait_node), tuple(args.wait_reader)):
+            player.get_logger().warning(f"no subscriber to the camera topics (or not all of {args.wait_node}, "
+                                        f"readers {args.wait_reader}) after "
                                         f"{args.wait} s: playing anyway")
         t0 = time.monotonic()
         try:
