@@ -49,3 +49,30 @@ def test_a_missing_value_in_the_window_rejects_the_depth():
 def test_an_even_edge_window_is_a_config_error_naming_the_key():
     with pytest.raises(ConfigError, match="depth_edge_window_px"):
         load_config(overrides={"odometry": {"depth_edge_window_px": 4}})
+
+
+@pytest.mark.parametrize("seed", [0, 1, 2])
+def test_a_small_step_under_the_edge_margin_is_what_the_rough_fraction_drops(seed):
+    """A 2.5 cm step (leaf over leaf) in noisy depth at 1 m on a slanted surface passes the edge test (its
+    window spans less than 3 cm + 5 sd); the roughest 40 % are the corners whose window holds the step."""
+    rng = np.random.default_rng(seed)
+    h, w = 120, 160
+    cols = np.arange(w, dtype=np.float32)[None, :]
+    depth = 1.0 + 0.0005 * cols + np.zeros((h, 1), np.float32)  # slanted, smooth
+    depth[:, 80:] += 0.025  # the step, from column 80
+    depth = (depth + rng.standard_normal((h, w)) * 0.004).astype(np.float32)
+    rows = np.arange(10, 110, 5.0)
+    on_step = np.array([[c, r] for r in rows for c in (78.0, 79.0, 80.0, 81.0)])  # 80 corners by the step
+    flat = np.array([[c, r] for r in rows for c in (20.0, 40.0, 60.0, 100.0, 120.0, 140.0)])  # 120 far from it
+    uv = np.vstack([on_step, flat])
+    assert (sample_depth(depth, uv, 0.03, 0.004, 7) > 0).mean() > 0.9  # the edge test alone keeps them
+    z = sample_depth(depth, uv, 0.03, 0.004, 7, rough_drop_fraction=0.4)
+    step_kept, flat_kept = (z[: len(on_step)] > 0).mean(), (z[len(on_step):] > 0).mean()
+    assert step_kept < 0.15, step_kept
+    assert flat_kept > 0.85, flat_kept
+    np.testing.assert_allclose(z[len(on_step):][z[len(on_step):] > 0], depth[flat[:, 1].astype(int), flat[:, 0].astype(int)][z[len(on_step):] > 0], atol=0.02)
+
+
+def test_a_rough_fraction_outside_0_1_is_a_config_error_naming_the_key():
+    with pytest.raises(ConfigError, match="depth_rough_drop_fraction"):
+        load_config(overrides={"odometry": {"depth_rough_drop_fraction": 1.0}})
