@@ -73,6 +73,9 @@ class AlignmentParams:
     # for different trees and the merge refused. The right shift scored 3.0 (9-tree partial_overlap), 5.7
     # (10-tree standard) and 9.8 mm (10-tree slope_weeds); shifts a tree or more off 21-110 mm.
     max_disagreement_mm: float = 16.0
+    # pairs from which a smooth bend along the row (quadratic in X) is taken off the gaps before the check
+    # above: a long row's own drift, not a sign of different trees (_bend_free_gaps)
+    bend_min_pairs: int = 10
 
 
 @dataclass(frozen=True)
@@ -316,6 +319,23 @@ def _pairs(pf: np.ndarray, pb: np.ndarray, radius: float) -> list[tuple[int, int
     return _mutual_nearest(np.linalg.norm(pf[:, None, [0, 2]] - pb[None, :, [0, 2]], axis=2), radius)  # (F, B)
 
 
+def _bend_free_gaps(pf: np.ndarray, pb: np.ndarray, params: AlignmentParams) -> np.ndarray:
+    """Gaps (N,) m in the (X, Z) plane between paired trunk points pf, pb (N, 3), less what a smooth bend
+    along the row explains: with bend_min_pairs pairs or more, the offsets' quadratic in X is taken off.
+    Each side's own drift bends a long row: on a 30-tree row the right shift's pairs were 19.8 mm apart
+    (median) after the one rigid fit, over max_disagreement_mm, and the merge was refused. A pair one tree
+    off keeps its offset (the trees' spacing and diameters differ from tree to tree), which no smooth
+    bend explains."""
+    off = (pb - pf)[:, [0, 2]]  # (N, 2)
+    if len(off) < params.bend_min_pairs:
+        return np.linalg.norm(off, axis=1)
+    x = pf[:, 0]
+    u = (x - x.mean()) / max(float(np.ptp(x)), 1e-6)
+    A = np.stack([np.ones_like(u), u, u * u], axis=1)  # (N, 3)
+    coef, *_ = np.linalg.lstsq(A, off, rcond=None)  # (3, 2)
+    return np.linalg.norm(off - A @ coef, axis=1)
+
+
 def _shift_costs(Bf: np.ndarray, Bb: np.ndarray, params: AlignmentParams) -> tuple[np.ndarray, np.ndarray]:
     """(shifts (S,), cost (S,)): eq. dist between the front-view boundaries over the stretch both cover
     at each shift along the row (truncated at 0.3 m per point); shifts leaving less than a third of the
@@ -418,7 +438,7 @@ def _from_shift(dx0: float, Bf: np.ndarray, Bb: np.ndarray, tf: np.ndarray, tb: 
         raise AlignmentError(
             f"only {len(pairs)} trunk pair(s) agree after alignment (of {len(near)} matched along the row): "
             f"at least {params.min_pairs} are needed to merge the sides")
-    gaps_mm = 1000 * np.array([g for _, _, g in pairs])
+    gaps_mm = 1000 * _bend_free_gaps(tf[[i for i, _, _ in pairs]], tb_al[[j for _, j, _ in pairs]], params)
     dd = [abs(front.trunk_diameter[i] - back.trunk_diameter[j]) * 1000 for i, j, _ in pairs
           if np.isfinite(front.trunk_diameter[i]) and np.isfinite(back.trunk_diameter[j])]
     score = float(np.median(gaps_mm)) + (float(np.median(dd)) if dd else 0.0)
