@@ -69,6 +69,10 @@ class SemanticBAParams:
     ground_sigma_offset_m: float = 0.01
     huber_k: float = 1.345
     max_iterations: int = 50
+    # Stop when an LM iteration lowers the error by less than this fraction. At GTSAM's 1e-5 the 100-tree
+    # tiled row ran all 50 iterations (error 746.6 -> 44.0; 30 tiled trees: 19 iterations, -> 12.7); at 1e-3
+    # it stops after 11 (-> 45.5) and 10 (-> 12.8): the whole merge 16.5 s vs 5.1 s (3.2x; was 5.4x).
+    relative_error_tol: float = 1e-3
     # Trellis posts (core/posts.py): one keyframe per pass by a post measures it, as a trunk is measured
     # (heading free), from that frame's depth alone. They tie a side's raised sweep, which sees no trunk,
     # to its level sweep. One view's axis: 0.7 / 4 mm median off the truth (level / raised views,
@@ -208,6 +212,7 @@ def semantic_bundle_adjust(front: SideShapes, back: SideShapes, params: Semantic
     before = _trunks_in_map(front, back, front.poses, back.poses)
     lm = gtsam.LevenbergMarquardtParams()
     lm.setMaxIterations(params.max_iterations)
+    lm.setRelativeErrorTol(params.relative_error_tol)
     opt = gtsam.LevenbergMarquardtOptimizer(graph, values, lm)
     e0 = graph.error(values)
     result = optimise_in_steps(opt, lm)
