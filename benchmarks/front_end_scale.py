@@ -3,7 +3,7 @@
 For each simulated row (scenario, trees, seed; simulated once, or reused from --workdir) and each side,
 the front end (core.odometry.RGBDFrontEnd, no loop closure, no bundle adjustment) places every frame
 under each variant of the `odometry` settings; its keyframe positions are fitted to the true camera
-positions with a similarity (Umeyama) and a rigid transform:
+positions (eval.metrics.trajectory_error) with a similarity and with a rigid transform:
 
 - scale %: how much too long (+) or short (-) the side's estimated path is (1/s - 1 of the similarity),
 - ATE mm: RMS position error after the rigid fit.
@@ -33,10 +33,11 @@ from rich.console import Console  # noqa: E402
 from rich.table import Table  # noqa: E402
 
 from orchard_mapping.config import load_config  # noqa: E402
-from orchard_mapping.core.geometry import umeyama  # noqa: E402
+from orchard_mapping.core.geometry import matrix_to_quat  # noqa: E402
 from orchard_mapping.core.odometry import RGBDFrontEnd  # noqa: E402
-from orchard_mapping.eval.ground_truth import load_ground_truth  # noqa: E402
-from orchard_mapping.eval.metrics import associate_stamps  # noqa: E402
+from orchard_mapping.core.types import StampedTrajectory  # noqa: E402
+from orchard_mapping.eval.ground_truth import GroundTruth, load_ground_truth  # noqa: E402
+from orchard_mapping.eval.metrics import trajectory_error  # noqa: E402
 from orchard_mapping.io.bags import read_rgbd  # noqa: E402
 from orchard_mapping.sim.scenario import load_scenario  # noqa: E402
 from orchard_mapping.sim.simulate import simulate  # noqa: E402
@@ -51,10 +52,9 @@ def parse_variant(text: str) -> tuple[str, dict]:
     return name, over
 
 
-def side_scale(sim: Path, side: str, overrides: dict) -> dict:
+def side_scale(sim: Path, gt: GroundTruth, side: str, overrides: dict) -> dict:
     """Front end alone on one side of a simulated row: scale %, ATE mm, keyframes, seconds."""
     cfg = load_config(overrides={"odometry": overrides} if overrides else None)
-    gt = load_ground_truth(sim / "ground_truth.json")
     seq = read_rgbd(sim / side, cfg.input.topics, mode="rgbd", max_pair_dt_s=cfg.input.max_pair_dt_s,
                     depth_min_m=cfg.input.depth_min_m, depth_max_m=cfg.input.depth_max_m)
     fe = RGBDFrontEnd(seq.intrinsics, cfg.odometry)
@@ -63,17 +63,14 @@ def side_scale(sim: Path, side: str, overrides: dict) -> dict:
         fe.track(frame)
     res = fe.result()
     seconds = time.perf_counter() - t0
-    stamps = np.array([k.stamp for k in res.keyframes])  # (K,)
-    est = np.array([k.T_odom_cam[:3, 3] for k in res.keyframes])  # (K, 3) odom_<side>
+    poses = np.array([k.T_odom_cam for k in res.keyframes])  # (K, 4, 4) odom_<side>
+    est = StampedTrajectory(np.array([k.stamp for k in res.keyframes]), poses[:, :3, 3],
+                            np.array([matrix_to_quat(T[:3, :3]) for T in poses]))
     true = gt.sides[side].trajectory
-    i, j = associate_stamps(stamps, np.asarray(true.stamps), 0.005)
-    e, t = est[i], np.asarray(true.positions)[j]  # (n, 3), (n, 3)
-    sim3 = umeyama(e, t, with_scale=True)
-    rigid = umeyama(e, t)
-    resid = e @ rigid.R.T + rigid.t - t  # (n, 3) m
-    return {"keyframes": int(len(i)), "scale_pct": 100.0 * (1.0 / sim3.s - 1.0),
-            "ate_mm": 1000.0 * float(np.sqrt(np.mean(np.sum(resid ** 2, axis=1)))),
-            "path_m": float(np.linalg.norm(np.diff(t, axis=0), axis=1).sum()), "seconds": seconds}
+    rigid = trajectory_error(est, true)  # ATE after a rigid fit
+    sim3 = trajectory_error(est, true, with_scale=True)  # true ~ s * est
+    return {"keyframes": rigid.n_associated, "scale_pct": 100.0 * (1.0 / sim3.alignment_scale - 1.0),
+            "ate_mm": rigid.ate_mm, "path_m": rigid.path_length_m, "seconds": seconds}
 
 
 def main() -> None:
@@ -91,9 +88,10 @@ def main() -> None:
         sim = args.workdir / f"{scenario}_{trees}trees_seed{seed}"
         if not (sim / "ground_truth.json").is_file():
             simulate(load_scenario(scenario, {"row.n_trees": int(trees)}), int(seed), sim, force=True)
+        gt = load_ground_truth(sim / "ground_truth.json")
         for side in ("front", "back"):
             for name, over in variants:
-                r = side_scale(sim, side, over)
+                r = side_scale(sim, gt, side, over)
                 rows.append({"row": spec, "side": side, "variant": name, **r})
                 print(json.dumps(rows[-1]), flush=True)
     table = Table(title="front end alone: scale error and ATE per side")
