@@ -37,6 +37,60 @@ def test_alpha_boundary_of_a_filled_square_lies_on_its_edges():
     assert len(b) >= 70 and np.all(edge < 0.01)
 
 
+@pytest.mark.parametrize("seed", [0, 1, 2])
+def test_alpha_boundary_in_tiles_is_the_one_triangulation_s(seed):
+    """The local computation (occupancy grid, tiles along x) gives exactly the vertices one Delaunay
+    triangulation of all points gives, on a canopy-like front view with holes, gaps and stray points."""
+    from orchard_mapping.core.alignment import _alpha_boundary_indices
+
+    rng = np.random.default_rng(seed)
+    blobs = [c + rng.normal(0, rng.uniform(0.1, 0.5), (rng.integers(200, 800), 2))
+             for c in np.stack([np.linspace(0, 12, 9), rng.uniform(0.5, 2.0, 9)], 1)]
+    stray = rng.uniform([0, 0], [12, 3], (150, 2))
+    xy = np.concatenate(blobs + [stray])
+    xy = xy[np.hypot(xy[:, 0] % 1.5 - 0.75, xy[:, 1] - 1.2) > 0.2]  # holes a disc of alpha passes through
+    whole = xy[_alpha_boundary_indices(xy, 0.15)]
+    tiled = alpha_boundary(xy, 0.15, tile_points=300)
+    assert len(whole) > 300
+    np.testing.assert_array_equal(tiled, whole)
+
+
+def _shift_costs_reference(Bf, Bb, params):
+    """eq. dist per shift, one nearest-neighbour query per shift (what _shift_costs computes at once)."""
+    from scipy.spatial import cKDTree
+
+    shifts = np.arange(Bf[:, 0].min() - Bb[:, 0].max(), Bf[:, 0].max() - Bb[:, 0].min() + params.shift_step_m,
+                       params.shift_step_m)
+    span = min(np.ptp(Bf[:, 0]), np.ptp(Bb[:, 0]))
+    cost = np.full(len(shifts), np.inf)
+    for k, dx in enumerate(shifts):
+        b = Bb + [dx, 0.0]
+        x0, x1 = max(Bf[:, 0].min(), b[:, 0].min()), min(Bf[:, 0].max(), b[:, 0].max())
+        fin, bin_ = Bf[(Bf[:, 0] >= x0) & (Bf[:, 0] <= x1)], b[(b[:, 0] >= x0) & (b[:, 0] <= x1)]
+        if x1 - x0 < span / 3 or len(fin) < 10 or len(bin_) < 10:
+            continue
+        d1, d2 = cKDTree(Bf).query(bin_)[0], cKDTree(bin_).query(fin)[0]
+        cost[k] = np.mean(np.minimum(d1, 0.3) ** 2) + np.mean(np.minimum(d2, 0.3) ** 2)
+    return shifts, cost
+
+
+@pytest.mark.parametrize("seed", [0, 1, 2])
+def test_shift_costs_at_once_equal_one_query_per_shift(seed):
+    from orchard_mapping.core.alignment import _shift_costs
+
+    rng = np.random.default_rng(seed)
+    n, length = int(rng.integers(40, 400)), rng.uniform(5, 40)
+    Bf = np.stack([rng.uniform(0, length, n), rng.uniform(0, 3, n)], 1)
+    Bb = Bf[rng.permutation(n)[: n - 20]] + [rng.uniform(-5, 5), 0.02] + rng.normal(0, 0.05, (n - 20, 2))
+    params = AlignmentParams()
+    s_ref, c_ref = _shift_costs_reference(Bf, Bb, params)
+    s, c = _shift_costs(Bf, Bb, params)
+    np.testing.assert_array_equal(s, s_ref)
+    np.testing.assert_array_equal(np.isfinite(c), np.isfinite(c_ref))
+    assert np.isfinite(c).sum() > 50
+    np.testing.assert_allclose(c[np.isfinite(c)], c_ref[np.isfinite(c_ref)], rtol=0, atol=1e-12)
+
+
 # --------------------------------------------------------------------------- a synthetic row
 
 def _row(rng: np.random.Generator, n_trees: int = 6, spacing: float = 1.5):
