@@ -535,11 +535,13 @@ class _Candidate:
     tb_al: np.ndarray  # (T_b, 3) back trunk points moved by S
     score_mm: float  # median gap of the paired axes + median diameter difference (lower is better)
     log: list[str]
+    cpd: bool = True  # the front views were fitted by CPD (else the start shift was kept)
 
 
 def _from_shift(dx0: float, Bf: np.ndarray, Bb: np.ndarray, tf: np.ndarray, tb: np.ndarray, front: AlignmentSide,
-                back: AlignmentSide, scale_free: bool, params: AlignmentParams) -> _Candidate:
-    """CPD of the front views from shift dx0, then the top view from the trunks paired along the row."""
+                back: AlignmentSide, scale_free: bool, params: AlignmentParams, use_cpd: bool = True) -> _Candidate:
+    """CPD of the front views from shift dx0 (or, use_cpd False, the shift as it is), then the top view from
+    the trunks paired along the row."""
     log: list[str] = []
     # CPD on the stretch both cover at this shift: given all of both boundaries it slides towards the
     # largest overlap, whatever the shift it started from (partial_overlap row: every start ended 1.85 m off).
@@ -549,8 +551,11 @@ def _from_shift(dx0: float, Bf: np.ndarray, Bb: np.ndarray, tf: np.ndarray, tb: 
     bin_ = b0[(b0[:, 0] >= x0) & (b0[:, 0] <= x1)]
     if len(fin) < 10 or len(bin_) < 10:
         raise AlignmentError(f"the front views share too little at a shift of {dx0:+.2f} m along the row")
-    R2, t2, s, sigma2 = cpd_rigid_2d(fin, bin_, with_scale=scale_free, w=params.cpd_outlier_weight,
-                                     iterations=params.cpd_iterations)
+    if use_cpd:
+        R2, t2, s, sigma2 = cpd_rigid_2d(fin, bin_, with_scale=scale_free, w=params.cpd_outlier_weight,
+                                         iterations=params.cpd_iterations)
+    else:
+        R2, t2, s, sigma2 = np.eye(2), np.zeros(2), 1.0, float("nan")
     t2 = t2 + s * R2 @ np.array([dx0, 0.0])
     # Lift the 2D similarity in (X, Y) to 3D: rotation about Z.
     R3 = np.eye(3)
@@ -560,7 +565,8 @@ def _from_shift(dx0: float, Bf: np.ndarray, Bb: np.ndarray, tf: np.ndarray, tb: 
     d, _ = cKDTree(Bf).query(Bb_al)
     inl = d < BOUNDARY_INLIER_M
     b_rms = float(np.sqrt(np.mean(d[inl] ** 2))) if inl.any() else float("nan")
-    log.append(f"CPD: rotation about Z {np.degrees(np.arctan2(R2[1, 0], R2[0, 0])):+.2f} deg, "
+    log.append(("" if use_cpd else "no CPD (the start shift as it is): ") +
+               f"CPD: rotation about Z {np.degrees(np.arctan2(R2[1, 0], R2[0, 0])):+.2f} deg, "
                f"t ({t2[0]:+.3f}, {t2[1]:+.3f}) m, scale {s:.4f}, sigma {1000 * np.sqrt(sigma2):.1f} mm, "
                f"boundary RMS {1000 * b_rms:.1f} mm over {inl.mean():.0%} of the back boundary")
     # Top view (X, Z): trunks paired along the row, then the rigid 2D fit of their axes (rotation about
@@ -594,7 +600,7 @@ def _from_shift(dx0: float, Bf: np.ndarray, Bb: np.ndarray, tf: np.ndarray, tb: 
     dd = [abs(front.trunk_diameter[i] - back.trunk_diameter[j]) * 1000 for i, j, _ in pairs
           if np.isfinite(front.trunk_diameter[i]) and np.isfinite(back.trunk_diameter[j])]
     score = float(np.median(gaps_mm)) + (float(np.median(dd)) if dd else 0.0)
-    return _Candidate(S, pairs, float(s), b_rms, tb_al, score, log)
+    return _Candidate(S, pairs, float(s), b_rms, tb_al, score, log, use_cpd)
 
 
 # --------------------------------------------------------------------------- the whole step
@@ -633,13 +639,17 @@ def align_sides(front: AlignmentSide, back: AlignmentSide, params: AlignmentPara
     voted = _trunk_vote_shift(tf, tb, front, back, params)
     if voted is not None and all(abs(voted - d) >= params.pair_radius_m * 4 for d in starts):
         starts.append(voted)
+    # Each start is also carried through without CPD (not for a side up to scale: CPD finds the scale): CPD
+    # may slide off a right start (a row whose stretches repeat: started 0.7 m from the truth, it ended half a
+    # tree off, its sigma collapsed on 8 % of the boundary); the trunks' agreement then picks the start.
     for dx0 in starts:
-        try:
-            cand = _from_shift(dx0, Bf, Bb, tf, tb, front, back, scale_free, params)
-        except AlignmentError as err:
-            failures.append(str(err))
-            continue
-        tried.append((cand.score_mm, dx0, cand))
+        for use_cpd in (True, False) if not scale_free else (True,):
+            try:
+                cand = _from_shift(dx0, Bf, Bb, tf, tb, front, back, scale_free, params, use_cpd)
+            except AlignmentError as err:
+                failures.append(str(err))
+                continue
+            tried.append((cand.score_mm, dx0, cand))
     if not tried:
         raise AlignmentError(failures[0] if failures else "no shift along the row aligns the sides' front views")
     tried.sort(key=lambda x: x[0])
@@ -651,7 +661,7 @@ def align_sides(front: AlignmentSide, back: AlignmentSide, params: AlignmentPara
             "they are probably different trees (the sides cover different stretches of the row, or both "
             "recordings are of the same side)")
     log.append(f"front-view X shift {dx0:+.2f} m, the best of {len(tried)} candidate(s) by trunk agreement "
-               + ", ".join(f"{d:+.2f} m: {sc:.1f} mm" for sc, d, _ in tried[:4]))
+               + ", ".join(f"{d:+.2f} m{'' if c.cpd else ' (no CPD)'}: {sc:.1f} mm" for sc, d, c in tried[:4]))
     log += best.log
     S, pairs, s, b_rms, tb_al = best.S, best.pairs, best.scale, best.boundary_rms_m, best.tb_al
     T = np.linalg.inv(cf.T_canon_odom) @ S @ cb.T_canon_odom

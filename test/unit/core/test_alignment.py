@@ -191,6 +191,30 @@ def test_the_sides_are_aligned_and_their_trunks_paired(seed):
     assert base_error(merged.T_front_back).max() < 0.010  # the issue's merge goal at the trunk bases
 
 
+@pytest.mark.parametrize("seed", [0, 1])
+def test_a_row_whose_stretches_repeat_is_paired_by_its_trunks_diameters(seed):
+    """One 2-tree stretch repeated 8 times: the front views fit as well at every shift by a stretch, and the
+    best few of those need not hold the right one. Trees differ in diameter (as a real row's do, by
+    centimetres): the shift at which trunks of like diameter line up is tried too, and it wins."""
+    import dataclasses
+
+    rng = np.random.default_rng(seed)
+    world1, bases1, axes1 = _row(np.random.default_rng(7), n_trees=2)
+    step = np.array([3.0, 0.0, 0.0])
+    world = np.vstack([world1 + c * step for c in range(8)])
+    bases = np.vstack([bases1 + c * step for c in range(8)])
+    axes = np.vstack([axes1] * 8)
+    diameter = rng.uniform(0.05, 0.12, len(bases))  # m, per tree
+    Twf, Twb = _random_T(rng), _random_T(rng)
+    front = _side(world, bases, axes, -2.0, Twf, rng)
+    back = _side(world, bases, axes, 2.0, Twb, rng, trunks=slice(None, None, -1), x_start=-2.0)
+    front = dataclasses.replace(front, trunk_diameter=diameter[front.trunk_ids] + rng.normal(0, 0.0015, len(bases)))
+    back = dataclasses.replace(back, trunk_diameter=diameter[back.trunk_ids] + rng.normal(0, 0.0015, len(bases)))
+    for candidates in (1, 4):  # front-view shifts carried on (the best one alone: a stretch off, or right by luck)
+        al = align_sides(front, back, AlignmentParams(shift_candidates=candidates), np.random.default_rng(seed))
+        assert sorted(al.pairs) == [(i, i) for i in range(len(bases))]
+
+
 def test_trunks_are_paired_only_where_the_transform_puts_them_together():
     rng = np.random.default_rng(4)
     world, bases, axes = _row(rng)
