@@ -127,3 +127,23 @@ def test_undulating_ground_gives_the_plane_of_the_ground_seen():
             out.append(np.inf if fit is None else np.degrees(np.arccos(min(1.0, fit.normal @ n_true))))
     assert sum(e <= 1.0 for e in errors) >= 7 and max(errors) < 3.0, errors
     assert max(plane_errors) > 3.0, plane_errors  # the earlier refit, beside it
+
+
+@pytest.mark.parametrize("seed", [0, 1, 2])
+def test_the_plane_goes_through_the_ground_surface_not_its_lowest_samples(seed):
+    """Each 4 cm cell holds ~10 samples of the ground (noise sd 4 mm): its lowest lies ~6 mm below the
+    surface. The plane through each ground cell's points near its lowest (cell_surface_band_m) is not."""
+    rng = np.random.default_rng(seed)
+    axis, base = np.array([0.0, 0.0, 1.0]), np.zeros(3)
+    r, ph = 0.5 * np.sqrt(rng.uniform(0, 1, 5000)), rng.uniform(0, 2 * np.pi, 5000)
+    xy = np.c_[r * np.cos(ph), r * np.sin(ph)]
+    P = np.c_[xy, _ground_z(*xy.T) + rng.normal(0, 0.004, len(xy))]
+    heights = {}
+    for band in (0.0, GroundParams().cell_surface_band_m):
+        fit = fit_local_ground(P, axis, base, GroundParams(cell_surface_band_m=band), np.random.default_rng(seed))
+        assert fit is not None
+        assert np.degrees(np.arccos(min(1.0, fit.normal @ N_TRUE))) < 0.5
+        heights[band] = 1000 * (fit.point[2] - _ground_z(*fit.point[:2]))  # mm, at the trunk
+    lowest, surface = heights[0.0], heights[GroundParams().cell_surface_band_m]
+    assert lowest < -3.0, heights  # the lowest samples' plane sits low
+    assert abs(surface) < 2.0, heights
