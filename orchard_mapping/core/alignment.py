@@ -11,11 +11,15 @@ in steps, each from a feature both sides see:
 2. Orthographic front view (X, Y): the alpha-shape occlusion boundary of each side's points above
    the ground, and a rigid (+scale when a side is up to scale) Coherent Point Drift of the two
    boundaries (Myronenko and Song 2010) over the residual rotation about Z, the X and Y translation
-   (and scale), started from the best X shift of eq. dist on a grid: a side may start at the other
-   end of the row, beyond CPD's reach.
-3. Depth (Z): the paper aligns trunk surface points near the median trunk plane, which leaves an
-   error up to a trunk's width. With trunk cylinders fitted per side the two sides see the same
-   axis, so the median Z offset of the paired trunk axes (at the diameter height) is used.
+   (and scale), started from X shifts on a grid: a side may start at the other end of the row, beyond
+   CPD's reach. A row repeats itself every tree, so several starts are carried on (the best few of
+   eq. dist, the shift at which trunks of like diameter line up) with CPD and without it, and the
+   trunks decide (step 3).
+3. Depth (Z) and heading: the paper aligns trunk surface points near the median trunk plane, which
+   leaves an error up to a trunk's width. With trunk cylinders fitted per side the two sides see the
+   same axis, so the trunk axes (at the diameter height), paired along the row, are fitted rigidly in
+   the top view (X, Z). Of the starts, the one whose pairs agree best (axis gap and diameter
+   difference) wins; if even that one disagrees, the sides are refused.
 
 Result: the similarity odom_front <- odom_back, the trunk-to-trunk pairs and the overlap along the
 row. Fewer than two trunks seen from both sides: `AlignmentError`, never a guessed merge.
