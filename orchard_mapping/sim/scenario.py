@@ -46,6 +46,10 @@ class TrunkSpec(_S):
     lean_deg_max: float = Field(4.0, ge=0.0)
     curve_m: float = Field(0.012, ge=0.0)  # sideways bow of the axis at mid-height
     clear_height_m: Range = (0.55, 0.75)  # trunk free of branches up to this height
+    # (a - b) / (a + b) of the trunk's elliptical cross-section, drawn per tree (its major axis at random);
+    # the stated diameter is a + b, the mean of two caliper readings at right angles. Real trunks: ~0.02-0.1.
+    ellipticity: Range = (0.0, 0.0)
+    bark_roughness_m: float = Field(0.0, ge=0.0)  # m, sd of smooth radial bumps of the bark
 
 
 class CanopySpec(_S):
@@ -192,6 +196,8 @@ class Scenario(_S):
         t = self.trunk
         if not t.diameter_min_m <= t.diameter_mean_m <= t.diameter_max_m:
             raise ValueError("trunk.diameter_mean_m must lie in [diameter_min_m, diameter_max_m]")
+        if not 0.0 <= t.ellipticity[0] <= t.ellipticity[1] < 0.5:
+            raise ValueError("trunk.ellipticity must satisfy 0 <= low <= high < 0.5")
         for key in ("front_span", "back_span"):
             a, b = getattr(self.path, key)
             if not 0.0 <= a < b <= 1.0:

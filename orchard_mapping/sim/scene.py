@@ -131,14 +131,17 @@ def _frame(t: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
 
 
 def tube(centres: np.ndarray, radii: np.ndarray, segments: int, cap: bool = True) -> tuple[np.ndarray, np.ndarray]:
-    """Generalised cylinder along a centre line (K, 3) with radii (K,): vertices, triangles."""
+    """Generalised cylinder along a centre line (K, 3) with radii (K,), or (K, segments) for a cross-section
+    that is not a circle (angles from the centre line's normal frame): vertices, triangles."""
     k = len(centres)
     tang = np.gradient(centres, axis=0)
     tang /= np.linalg.norm(tang, axis=1, keepdims=True)
     u, v = _frame(tang)
     ang = np.linspace(0.0, 2 * np.pi, segments, endpoint=False)
     ring = np.cos(ang)[None, :, None] * u[:, None, :] + np.sin(ang)[None, :, None] * v[:, None, :]  # (K, S, 3)
-    verts = centres[:, None, :] + radii[:, None, None] * ring
+    r = np.asarray(radii, float)
+    r = r[:, None] if r.ndim == 1 else r  # (K, 1) or (K, S)
+    verts = centres[:, None, :] + r[:, :, None] * ring
     verts = verts.reshape(-1, 3)
     i = np.arange(k - 1)[:, None]
     j = np.arange(segments)[None, :]
@@ -338,6 +341,33 @@ def terrain_plane(terrain: Terrain, px: np.ndarray, py: np.ndarray, x: float, y:
     return np.array([x, y, c]), normal
 
 
+TRUNK_SEGMENTS = 20  # vertices around the trunk's cross-section
+
+
+def _trunk_radii(rng: np.random.Generator, tr: TrunkSpec, s: np.ndarray, r_mean: np.ndarray, segments: int
+                 ) -> np.ndarray:
+    """Radii of the trunk mesh: (K,) a circle of r_mean (m) at each axis point, or (K, segments) where
+    the trunk is elliptical or its bark rough. An ellipse of semi-axes r (1 + e) and r (1 - e), its major
+    axis turned at random, keeps the stated diameter as the mean of its two axes (two caliper readings
+    at right angles); the bark's bumps are a few smooth waves round and along the trunk. No random
+    number is drawn for a round, smooth trunk: scenes without either are those of before."""
+    if max(tr.ellipticity) <= 0 and tr.bark_roughness_m <= 0:
+        return r_mean
+    ang = np.linspace(0.0, 2 * np.pi, segments, endpoint=False)  # (S,)
+    e = rng.uniform(*tr.ellipticity)
+    theta = rng.uniform(0.0, np.pi)
+    unit = 1.0 / np.sqrt((np.cos(ang - theta) / (1 + e)) ** 2 + (np.sin(ang - theta) / (1 - e)) ** 2)  # (S,)
+    radii = r_mean[:, None] * unit[None, :]  # (K, S)
+    if tr.bark_roughness_m > 0:
+        waves = 6
+        m = rng.integers(2, 7, waves)  # waves round the trunk
+        k = 2 * np.pi / rng.uniform(0.05, 0.3, waves)  # rad/m along it
+        phase = rng.uniform(0, 2 * np.pi, waves)
+        bumps = np.cos(m[None, None, :] * ang[None, :, None] + k[None, None, :] * s[:, None, None] + phase).sum(-1)
+        radii = radii + tr.bark_roughness_m * bumps / np.sqrt(waves / 2)  # sd of a sum of unit cosines
+    return radii
+
+
 def _build_tree(mb: MeshBuilder, rng: np.random.Generator, sc: Scenario, tid: int, xy: np.ndarray,
                 terrain: Terrain, fruits: list[Fruit], sphere_v: np.ndarray, sphere_t: np.ndarray) -> TreeGeom:
     tr, cp, fr = sc.trunk, sc.canopy, sc.fruit
@@ -364,8 +394,7 @@ def _build_tree(mb: MeshBuilder, rng: np.random.Generator, sc: Scenario, tid: in
     d_clear = d_stated + tr.taper_per_m * (s_stated - s_clear)
     frac = np.clip((s - s_clear) / (leader_len - s_clear), 0, 1)
     diam = np.where(s <= s_clear, d_lin, d_clear * (1 - 0.8 * frac ** 0.8))
-    # Bark roughness: a few mm of radial noise along the axis keeps the cylinder honest.
-    v, t = tube(axis, diam / 2, 20)
+    v, t = tube(axis, _trunk_radii(rng, tr, s, diam / 2, TRUNK_SEGMENTS), TRUNK_SEGMENTS)
     t0 = mb.n_triangles
     ap = sc.appearance
     bark = np.array(ap.bark_rgb) * rng.uniform(*ap.bark_gain)

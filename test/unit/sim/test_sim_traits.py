@@ -67,6 +67,33 @@ def test_diameter_is_axis_interpolation_and_mesh(standard_sim):
         assert 2 * np.median(radial) == pytest.approx(d, abs=5e-4)
 
 
+def test_an_elliptical_trunk_keeps_its_stated_diameter_as_the_mean_of_its_axes():
+    """trunk.ellipticity e: the cross-section's axes are d (1 + e) and d (1 - e) (two caliper readings at right
+    angles average to the stated d); bark_roughness_m adds bumps of that sd. A scene without either draws
+    nothing more: its trees are those of before."""
+    over = {"row.n_trees": 3, "fruit.per_tree": [1, 2], "structure.weeds_per_m2": 0.0}
+    plain = build_scene(load_scenario("standard", over), 5)
+    assert build_scene(load_scenario("standard", {**over, "trunk.ellipticity": [0.0, 0.0]}), 5).trees[1].axis_diam \
+        .tolist() == plain.trees[1].axis_diam.tolist()
+
+    def rings(scene):  # per tree: (radii of the mesh ring near the diameter height (20,), stated diameter)
+        for tree in scene.trees:
+            k = int(np.searchsorted(tree.axis_s, 0.3))
+            w = tree.axis_points[k + 1] - tree.axis_points[k - 1]
+            w /= np.linalg.norm(w)
+            v = scene.vertices[np.unique(scene.triangles[tree.trunk_tri[0]:tree.trunk_tri[1]])] - tree.axis_points[k]
+            ring = v[np.abs(v @ w) < 1e-6]
+            assert len(ring) == 20
+            yield np.linalg.norm(ring - np.outer(ring @ w, w), axis=1), tree.axis_diam[k]
+
+    for radial, d in rings(build_scene(load_scenario("standard", {**over, "trunk.ellipticity": [0.08, 0.08]}), 5)):
+        assert radial.max() == pytest.approx(0.54 * d, rel=0.01)  # a vertex lies within 9 deg of each axis
+        assert radial.min() == pytest.approx(0.46 * d, rel=0.01)
+    bumps = [radial - d / 2 for radial, d in rings(
+        build_scene(load_scenario("standard", {**over, "trunk.bark_roughness_m": 0.002}), 5))]
+    assert 0.001 < np.std(bumps) < 0.003
+
+
 def test_trunk_diameter_distribution(big_row):
     """Over 200 trees: mean ~0.069 m, sd ~0.0085 m, all in [0.04, 0.09] m.
 
