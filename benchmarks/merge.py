@@ -37,7 +37,7 @@ import numpy as np  # noqa: E402
 from rich.console import Console  # noqa: E402
 from rich.table import Table  # noqa: E402
 
-from orchard_mapping.config import load_config  # noqa: E402
+from orchard_mapping.config import load_config, parse_yaml  # noqa: E402
 from orchard_mapping.core.geometry import transform_points  # noqa: E402
 from orchard_mapping.eval.evaluate import trunk_scene_points  # noqa: E402
 from orchard_mapping.eval.ground_truth import load_ground_truth  # noqa: E402
@@ -83,14 +83,23 @@ def add_case_arguments(ap: argparse.ArgumentParser) -> None:
     ap.add_argument("--json", type=Path)
     ap.add_argument("--masks", action="store_true",
                     help="trunks from the simulator's exact instance masks instead of the shipped detector")
+    ap.add_argument("--sim-set", action="append", default=[], metavar="KEY=VALUE",
+                    help="scenario setting for the rows simulated here (e.g. 'trunk.ellipticity=[0.03,0.1]'), "
+                         "named in --tag")
+    ap.add_argument("--tag", default="", help="added to the simulated rows' folder names (their settings)")
 
 
 def case_sides(scenario: str, args: argparse.Namespace) -> tuple[Any, dict[str, Any]]:
     """(ground truth, both sides reconstructed with their trunks) of one scenario (add_case_arguments)."""
-    sim_dir = args.workdir / f"{scenario}_{args.trees}trees_{args.rate:g}hz_seed{args.seed}" / "sim"
+    tag = getattr(args, "tag", "")
+    name = f"{scenario}_{args.trees}trees_{args.rate:g}hz_seed{args.seed}" + (f"_{tag}" if tag else "")
+    sim_dir = args.workdir / name / "sim"
     if not (args.reuse and (sim_dir / "ground_truth.json").is_file()):
-        simulate(load_scenario(scenario, {"row.n_trees": args.trees, "camera.rate_hz": args.rate}), args.seed,
-                 sim_dir, force=True)
+        settings = {"row.n_trees": args.trees, "camera.rate_hz": args.rate}
+        for kv in getattr(args, "sim_set", []):
+            key, value = kv.split("=", 1)
+            settings[key.strip()] = parse_yaml(value)
+        simulate(load_scenario(scenario, settings), args.seed, sim_dir, force=True)
     return load_ground_truth(sim_dir / "ground_truth.json"), _sides(sim_dir, args.reuse, args.masks)
 
 
