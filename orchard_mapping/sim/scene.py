@@ -242,7 +242,11 @@ def build_scene(sc: Scenario, seed: int) -> Scene:
     fruits: list[Fruit] = []
     sphere_v, sphere_t = uv_sphere()
     for i in range(n):
-        trees.append(_build_tree(mb, rng, sc, i, np.array([xs[i], ys[i]]), terrain, fruits, sphere_v, sphere_t))
+        # The trunk's cross-section (ellipse, bark) draws from a stream of its own: a row with elliptical
+        # trunks is otherwise the same row (same canopies, fruit, weeds), so the two compare tree by tree.
+        shape_rng = np.random.default_rng([seed, _TRUNK_SHAPE_STREAM, i])
+        trees.append(_build_tree(mb, rng, sc, i, np.array([xs[i], ys[i]]), terrain, fruits, sphere_v, sphere_t,
+                                 shape_rng))
 
     # --- posts and wire
     post_x = [x0 - 0.5 * row.spacing_m, x1 + 0.5 * row.spacing_m]
@@ -342,6 +346,7 @@ def terrain_plane(terrain: Terrain, px: np.ndarray, py: np.ndarray, x: float, y:
 
 
 TRUNK_SEGMENTS = 20  # vertices around the trunk's cross-section
+_TRUNK_SHAPE_STREAM = 0x7472756E  # the trunks' cross-section draws (seed, this, tree)
 
 
 def _trunk_radii(rng: np.random.Generator, tr: TrunkSpec, s: np.ndarray, r_mean: np.ndarray, segments: int
@@ -349,8 +354,8 @@ def _trunk_radii(rng: np.random.Generator, tr: TrunkSpec, s: np.ndarray, r_mean:
     """Radii of the trunk mesh: (K,) a circle of r_mean (m) at each axis point, or (K, segments) where
     the trunk is elliptical or its bark rough. An ellipse of semi-axes r (1 + e) and r (1 - e), its major
     axis turned at random, keeps the stated diameter as the mean of its two axes (two caliper readings
-    at right angles); the bark's bumps are a few smooth waves round and along the trunk. No random
-    number is drawn for a round, smooth trunk: scenes without either are those of before."""
+    at right angles); the bark's bumps are a few smooth waves round and along the trunk. rng: the trunk's
+    own stream (build_scene), so the rest of the scene does not change with these settings."""
     if max(tr.ellipticity) <= 0 and tr.bark_roughness_m <= 0:
         return r_mean
     ang = np.linspace(0.0, 2 * np.pi, segments, endpoint=False)  # (S,)
@@ -369,7 +374,8 @@ def _trunk_radii(rng: np.random.Generator, tr: TrunkSpec, s: np.ndarray, r_mean:
 
 
 def _build_tree(mb: MeshBuilder, rng: np.random.Generator, sc: Scenario, tid: int, xy: np.ndarray,
-                terrain: Terrain, fruits: list[Fruit], sphere_v: np.ndarray, sphere_t: np.ndarray) -> TreeGeom:
+                terrain: Terrain, fruits: list[Fruit], sphere_v: np.ndarray, sphere_t: np.ndarray,
+                shape_rng: np.random.Generator) -> TreeGeom:
     tr, cp, fr = sc.trunk, sc.canopy, sc.fruit
     gp, gn = local_ground_plane(terrain, float(xy[0]), float(xy[1]))
     base = np.array([xy[0], xy[1], float(terrain.height(xy[0], xy[1]))])
@@ -394,7 +400,7 @@ def _build_tree(mb: MeshBuilder, rng: np.random.Generator, sc: Scenario, tid: in
     d_clear = d_stated + tr.taper_per_m * (s_stated - s_clear)
     frac = np.clip((s - s_clear) / (leader_len - s_clear), 0, 1)
     diam = np.where(s <= s_clear, d_lin, d_clear * (1 - 0.8 * frac ** 0.8))
-    v, t = tube(axis, _trunk_radii(rng, tr, s, diam / 2, TRUNK_SEGMENTS), TRUNK_SEGMENTS)
+    v, t = tube(axis, _trunk_radii(shape_rng, tr, s, diam / 2, TRUNK_SEGMENTS), TRUNK_SEGMENTS)
     t0 = mb.n_triangles
     ap = sc.appearance
     bark = np.array(ap.bark_rgb) * rng.uniform(*ap.bark_gain)

@@ -69,8 +69,8 @@ def test_diameter_is_axis_interpolation_and_mesh(standard_sim):
 
 def test_an_elliptical_trunk_keeps_its_stated_diameter_as_the_mean_of_its_axes():
     """trunk.ellipticity e: the cross-section's axes are d (1 + e) and d (1 - e) (two caliper readings at right
-    angles average to the stated d); bark_roughness_m adds bumps of that sd. A scene without either draws
-    nothing more: its trees are those of before."""
+    angles average to the stated d); bark_roughness_m adds bumps of that sd. The cross-section draws from a
+    stream of its own: with or without either, the rest of the row is the same (trees compare one by one)."""
     over = {"row.n_trees": 3, "fruit.per_tree": [1, 2], "structure.weeds_per_m2": 0.0}
     plain = build_scene(load_scenario("standard", over), 5)
     assert build_scene(load_scenario("standard", {**over, "trunk.ellipticity": [0.0, 0.0]}), 5).trees[1].axis_diam \
@@ -86,6 +86,11 @@ def test_an_elliptical_trunk_keeps_its_stated_diameter_as_the_mean_of_its_axes()
             assert len(ring) == 20
             yield np.linalg.norm(ring - np.outer(ring @ w, w), axis=1), tree.axis_diam[k]
 
+    oval = build_scene(load_scenario("standard", {**over, "trunk.ellipticity": [0.08, 0.08],
+                                                  "trunk.bark_roughness_m": 0.002}), 5)
+    for a, b in zip(plain.trees, oval.trees):
+        assert a.axis_diam.tolist() == b.axis_diam.tolist() and a.top_z_point.tolist() == b.top_z_point.tolist()
+        assert a.canopy_points.shape == b.canopy_points.shape and np.array_equal(a.canopy_points, b.canopy_points)
     for radial, d in rings(build_scene(load_scenario("standard", {**over, "trunk.ellipticity": [0.08, 0.08]}), 5)):
         assert radial.max() == pytest.approx(0.54 * d, rel=0.01)  # a vertex lies within 9 deg of each axis
         assert radial.min() == pytest.approx(0.46 * d, rel=0.01)
