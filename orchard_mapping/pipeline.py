@@ -30,7 +30,8 @@ from orchard_mapping.core.fusion import FusionResult, fuse_side
 from orchard_mapping.core.merge import HeightPrior, InitialTransform, SemanticPair, initial_transform
 from orchard_mapping.core.geometry import SlabIndex, matrix_to_quat, move_with_keyframes
 from orchard_mapping.core.odometry import RGBDFrontEnd
-from orchard_mapping.core.semantic_ba import SemanticBAResult, SideShapes, TrunkShape, semantic_bundle_adjust, trunk_frame
+from orchard_mapping.core.semantic_ba import (HeightAnchor, SemanticBAResult, SideShapes, TrunkShape, semantic_bundle_adjust,
+                                             trunk_frame)
 from orchard_mapping.core.sidemap import FrontEndResult, LoopClosure, SideMap
 from orchard_mapping.core.sides import UTurnSides
 from orchard_mapping.core.cylinder import Cylinder
@@ -556,9 +557,15 @@ def _merge_axis(lm: TrunkLandmark) -> np.ndarray:
     return lm.merge_axis if lm.merge_axis is not None else lm.axis
 
 
-def _trunk_shapes(sm: SideMap, ids: list[int], T_map_odom: np.ndarray, height_m: float) -> list[TrunkShape]:
+def _row_direction(bases: np.ndarray) -> np.ndarray:
+    """(3,) unit: the row's direction through trunk bases (T, 3) (their first principal axis), T >= 2."""
+    return np.linalg.svd(bases - bases.mean(axis=0), full_matrices=False)[2][0]
+
+
+def _trunk_shapes(sm: SideMap, ids: list[int], T_map_odom: np.ndarray, height_m: float, row_map: np.ndarray
+                  ) -> list[TrunkShape]:
     """Each paired trunk of a side as the semantic BA measures it: its frame (origin on the whole-trunk
-    axis at the diameter height, z along it, x towards map x) and local ground, in the camera of the
+    axis at the diameter height, z along it, x along the row: row_map (3,) in map) and local ground, in the camera of the
     observation that saw most of it. (The band cylinder's own axis, fitted on 16 cm of trunk, tilts
     5-18 deg off the whole trunk's on the 10-tree rows: only its radius is used.)"""
     by_id = {t.id: t for t in sm.trunks}
@@ -574,8 +581,7 @@ def _trunk_shapes(sm: SideMap, ids: list[int], T_map_odom: np.ndarray, height_m:
             R, t = sm.keyframe_poses[k][:3, :3], sm.keyframe_poses[k][:3, 3]
             n = np.asarray(lm.ground.normal, float)
             ground = np.array([*(R.T @ n), n @ t + lm.ground.offset])
-        out.append(TrunkShape(tree, k, np.linalg.inv(T_map_cam) @ trunk_frame(origin_map, axis_map,
-                                                                             np.array([1.0, 0.0, 0.0])), ground,
+        out.append(TrunkShape(tree, k, np.linalg.inv(T_map_cam) @ trunk_frame(origin_map, axis_map, row_map), ground,
                               grounded=_ground_kind(lm) > 0))
     return out
 
@@ -624,10 +630,17 @@ def merge_sides(front: SideMap, back: SideMap, cfg: OrchardConfig) -> MergeOutco
         h = cfg.trunks.diameter_height_m
         back_poses = it.T_front_back[None] @ back.keyframe_poses
         posts = post_shapes([(front.posts, front.keyframe_poses), (back.posts, back_poses)])
-        shapes = (SideShapes(front.keyframe_poses, _trunk_shapes(front, [i for i, _ in al.pairs], np.eye(4), h),
+        by_id = {t.id: t for t in front.trunks}
+        row = _row_direction(np.array([by_id[i].base for i, _ in al.pairs]))  # map = odom_front
+        shapes = (SideShapes(front.keyframe_poses, _trunk_shapes(front, [i for i, _ in al.pairs], np.eye(4), h, row),
                              posts[0]),
-                  SideShapes(back_poses, _trunk_shapes(back, [j for _, j in al.pairs], it.T_front_back, h), posts[1]))
-        sba = semantic_bundle_adjust(*shapes, cfg.semantic_ba)
+                  SideShapes(back_poses, _trunk_shapes(back, [j for _, j in al.pairs], it.T_front_back, h, row),
+                             posts[1]))
+        anchor = None
+        if prior is not None and cfg.semantic_ba.height_sigma_m > 0:  # the initial transform's height prior
+            point = it.T_front_back[:3, :3] @ prior.point_b + it.T_front_back[:3, 3]
+            anchor = HeightAnchor(prior.up, point, float(prior.up @ prior.target_f), cfg.semantic_ba.height_sigma_m)
+        sba = semantic_bundle_adjust(*shapes, cfg.semantic_ba, anchor)
         seconds["semantic_ba"] = time.perf_counter() - t0
     return MergeOutcome(cfg.merge.method, it.T_front_back, al.pairs, al, it, sba, shapes, seconds)
 

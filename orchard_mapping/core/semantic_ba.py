@@ -40,7 +40,7 @@ from orchard_mapping.core.bundle_adjustment import optimise_in_steps
 from orchard_mapping.errors import AlignmentError
 
 __all__ = ["PostShape", "SemanticBAParams", "SideShapes", "SemanticBAResult", "TrunkShape", "semantic_bundle_adjust",
-           "trunk_frame"]
+           "trunk_frame", "HeightAnchor"]
 
 logger = logging.getLogger(__name__)
 
@@ -66,6 +66,14 @@ class SemanticBAParams:
     # / 20.7 mm off (0.095 / 5.7 at 0.5 m; 0.10 m: 13.3 mm), standard 0.077 / 4.6 -> 0.076 / 3.7 mm. The
     # heights are left to the shared grounds (plane factors).
     trunk_sigma_across_m: float = 0.003
+    # Across the axis in the viewing direction (across the row) a side's axis point is also where a circle
+    # fitted to the half of the trunk that side sees puts the centre: on a trunk that is not round it sits
+    # towards or away from that side's cameras by up to the difference of its semi-axes, the other side's
+    # the opposite way (a trunk frame's x runs along the row, y across it). Held at 3 mm, a 10-tree row of
+    # 3-10 % elliptical trunks merged 16.3 mm off (initial transform 8.5); at 8 mm 5.9 mm. Over ten rows
+    # (round and elliptical, 10 and 30 trees) the merged map's error summed 73.0 mm at 3 mm, 65.9 at 8
+    # (worst row 12.8 -> 9.1 mm; the 30-tree round row 6.9 -> 9.1): docs/merge.md.
+    trunk_sigma_depth_m: float = 0.008
     trunk_sigma_along_m: float = 0.5
     trunk_sigma_tilt_deg: float = 0.5
     # A side's local ground: normal (deg) and offset (m).
@@ -85,6 +93,10 @@ class SemanticBAParams:
     post_sigma_across_m: float = 0.005
     post_sigma_along_m: float = 0.5  # the two passes see different stretches of the post
     post_sigma_tilt_deg: float = 1.0
+    # m: the back side's height held at the initial alignment's (HeightAnchor); 0 = not held. Without it a
+    # row whose back side had no local ground merged 41 mm off (its trunks' wide grounds 5 cm off); held
+    # at 2 / 5 / 10 cm: 2.8 / 11.1 / 26.2 mm, the nine other rows' sum 62.3 mm without, 63.1 at 2 cm.
+    height_sigma_m: float = 0.02
 
 
 @dataclass(frozen=True)
@@ -93,7 +105,7 @@ class TrunkShape:
 
     tree: int  # the pair index: the same tree on both sides
     keyframe: int  # index into that side's poses
-    T_cam_trunk: np.ndarray  # (4, 4) trunk frame (origin on the axis at the diameter height, z = axis)
+    T_cam_trunk: np.ndarray  # (4, 4) trunk frame (origin on the axis at the diameter height, z = axis, x along the row)
     ground_cam: np.ndarray | None = None  # (4,) plane n . p + d = 0 in that camera frame (n up), or None
     # The origin's height along the axis came from this side's local ground. Without one it is the lowest
     # trunk point (weeds may hide the foot): its height is then not a measurement (loose along the axis).
@@ -230,8 +242,39 @@ def _fill_chain(poses: np.ndarray, anchors: np.ndarray, optimised: dict[int, np.
     return out
 
 
-def semantic_bundle_adjust(front: SideShapes, back: SideShapes, params: SemanticBAParams) -> SemanticBAResult:
-    """Both sides' keyframe poses and the shared trunks and grounds (module docstring)."""
+@dataclass(frozen=True)
+class HeightAnchor:
+    """How high the back side sits, from the initial alignment (the two sides' whole ground planes): the
+    back side's point `point` (3,) m in map at its initial poses belongs at `height` m along `up` (3,) unit,
+    within `sigma_m`. Trunks say almost nothing along their axes (each side's diameter height hangs on its
+    own ground, loose), and shared grounds exist only where both sides fitted a local ground: on a row
+    whose back side had none (a 10-tree standard row, elliptical trunks, seed 1) the trunks alone lowered
+    the back side by 55 mm, onto its wide grounds' heights."""
+
+    up: np.ndarray
+    point: np.ndarray
+    height: float
+    sigma_m: float
+
+
+def _add_height_anchor(graph: gtsam.NonlinearFactorGraph, k: int, T_map_cam: np.ndarray, anchor: HeightAnchor
+                       ) -> None:
+    """The anchor as a built-in PriorFactorPose3 on back keyframe k whose information holds only the
+    anchor point's height: for X = M Exp([w; v]) the point p (camera frame) rises by u.v - (u x p).w, u the
+    up direction in the camera (first order; the corrections are centimetres)."""
+    p = (np.linalg.inv(T_map_cam) @ np.append(anchor.point, 1.0))[:3]
+    u = T_map_cam[:3, :3].T @ anchor.up
+    a = np.concatenate([-np.cross(u, p), u])  # (6,) rotation first, as gtsam's Pose3 tangent
+    info = np.outer(a, a) / anchor.sigma_m ** 2 + 1e-9 * np.eye(6)  # rank one; the rest free
+    M = T_map_cam.copy()
+    M[:3, 3] += anchor.up * (anchor.height - float(anchor.up @ anchor.point))  # the pose that puts it there
+    graph.add(gtsam.PriorFactorPose3(B(k), gtsam.Pose3(M), gtsam.noiseModel.Gaussian.Information(info)))
+
+
+def semantic_bundle_adjust(front: SideShapes, back: SideShapes, params: SemanticBAParams,
+                           height: HeightAnchor | None = None) -> SemanticBAResult:
+    """Both sides' keyframe poses and the shared trunks and grounds (module docstring); `height` holds the back
+    side's height where the grounds do not."""
     shared = {t.tree for t in front.trunks} & {t.tree for t in back.trunks}
     if len(shared) < 2:
         raise AlignmentError(f"semantic BA needs at least two trees seen from both sides, got {len(shared)}")
@@ -241,7 +284,7 @@ def semantic_bundle_adjust(front: SideShapes, back: SideShapes, params: Semantic
     def trunk_noise(along_m: float) -> gtsam.noiseModel.Base:
         return gtsam.noiseModel.Robust.Create(huber, gtsam.noiseModel.Diagonal.Sigmas(np.array(
             [np.radians(params.trunk_sigma_tilt_deg)] * 2 + [10.0]  # rotation: tilt x, y; heading free
-            + [params.trunk_sigma_across_m] * 2 + [along_m])))
+            + [params.trunk_sigma_across_m, params.trunk_sigma_depth_m, along_m])))
 
     grounded_noise, loose_noise = trunk_noise(params.trunk_sigma_along_m), trunk_noise(UNGROUNDED_ALONG_SIGMA_M)
     # OrientedPlane3Factor takes a Gaussian model only: a pair of grounds that disagree by more than 3
@@ -254,9 +297,13 @@ def semantic_bundle_adjust(front: SideShapes, back: SideShapes, params: Semantic
     # 4.4x the 30-tree time); the keyframes between are filled in afterwards (_fill_chain).
     q_rot, q_trans = np.radians(params.step_sigma_rot_deg) ** 2, params.step_sigma_trans_m ** 2
     chains = {}
+    k_height = None
+    if height is not None:  # the back keyframe nearest the anchor point carries it
+        k_height = int(np.argmin(np.linalg.norm(back.poses[:, :3, 3] - height.point, axis=1)))
     for sym, side in ((F, front), (B, back)):
         used = ({t.keyframe for t in side.trunks if t.tree in shared}
-                | ({p.keyframe for p in side.posts} if params.use_posts else set()))
+                | ({p.keyframe for p in side.posts} if params.use_posts else set())
+                | ({k_height} if sym is B and k_height is not None else set()))
         anchors = np.array(sorted(used | {0, len(side.poses) - 1}), np.int64)
         cov = _chain_covariances(side.poses, anchors, q_rot, q_trans)
         chains[sym] = (anchors, cov)
@@ -268,6 +315,8 @@ def semantic_bundle_adjust(front: SideShapes, back: SideShapes, params: Semantic
                                                gtsam.noiseModel.Gaussian.Covariance(cov[b])))
     graph.add(gtsam.PriorFactorPose3(F(0), gtsam.Pose3(front.poses[0]),
                                      gtsam.noiseModel.Isotropic.Sigma(6, GAUGE_SIGMA)))
+    if height is not None:
+        _add_height_anchor(graph, k_height, back.poses[k_height], height)
     grounds: set[int] = set()
     front_map = {t.tree: front.poses[t.keyframe] @ t.T_cam_trunk for t in front.trunks if t.tree in shared}
     for tree, M in front_map.items():  # initial: the front side's trunk

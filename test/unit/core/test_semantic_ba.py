@@ -9,8 +9,8 @@ import pytest
 from scipy.spatial.transform import Rotation
 
 from orchard_mapping.core.geometry import make_transform
-from orchard_mapping.core.semantic_ba import (PostShape, SemanticBAParams, SideShapes, TrunkShape, semantic_bundle_adjust,
-                                            trunk_frame)
+from orchard_mapping.core.semantic_ba import (HeightAnchor, PostShape, SemanticBAParams, SideShapes, TrunkShape,
+                                            semantic_bundle_adjust, trunk_frame)
 from orchard_mapping.errors import AlignmentError
 
 TREES_X = 0.75 + 1.5 * np.arange(6)  # m, along the row (map x); trunks at y = 0, ground z = 0
@@ -24,12 +24,14 @@ def _poses(y: float, n: int = 80) -> np.ndarray:
     return np.array([make_transform(R, np.array([x, y, 1.0])) for x in np.linspace(0.0, 9.0, n)])
 
 
-def _shapes(true_poses: np.ndarray, rng: np.random.Generator, lean: np.ndarray) -> list[TrunkShape]:
+def _shapes(true_poses: np.ndarray, rng: np.random.Generator, lean: np.ndarray, noise_scale: float = 1.0
+            ) -> list[TrunkShape]:
     out = []
     for i, x in enumerate(TREES_X):
         k = int(np.argmin(np.abs(true_poses[:, 0, 3] - x)))  # the keyframe facing the trunk
         Tm = trunk_frame(np.array([x, 0.0, 0.3]), lean[i], np.array([1.0, 0.0, 0.0]))
-        noise = make_transform(Rotation.from_rotvec(rng.normal(0, 0.002, 3)).as_matrix(), rng.normal(0, 0.001, 3))
+        noise = make_transform(Rotation.from_rotvec(rng.normal(0, 0.002 * noise_scale, 3)).as_matrix(),
+                               rng.normal(0, 0.001 * noise_scale, 3))
         T_cam_trunk = np.linalg.inv(true_poses[k]) @ Tm @ noise
         R, t = true_poses[k][:3, :3], true_poses[k][:3, 3]
         n = np.array([0.0, 0.0, 1.0])
@@ -66,7 +68,9 @@ def test_the_back_side_drift_is_corrected_by_the_shared_trunks(seed):
     med0, max0 = _gap_stats(res.gaps_before_mm)
     med1, max1 = _gap_stats(res.gaps_after_mm)
     assert max0 > 10.0  # the drift is visible: the halves of the far trunks are centimetres apart
-    assert med1 < 2.0 and max1 < 4.0  # the issue's goals are 5 and 15 mm
+    # The issue's goals are 5 and 15 mm. Across the row a trunk is held loosely (trunk_sigma_depth_m: its
+    # cross-section may not be round), so part of the shapes' 1 mm noise is left open there.
+    assert med1 < 3.0 and max1 < 6.0
     # The sides themselves are bent towards each other, not only shifted: the back camera's position
     # relative to the front camera at the same place along the row, against the truth. (Which side
     # drifted cannot be known from the trunks: the disagreement is shared, so neither side is exact.)
@@ -208,3 +212,68 @@ def test_chain_filled_between_anchors_is_the_whole_chains_optimum():
     assert off.max() < 0.005 * moved_by.max(), (off.max(), moved_by.max())
     turned = Rotation.from_matrix(np.transpose(filled[:, :3, :3], (0, 2, 1)) @ whole[:, :3, :3]).magnitude()
     assert np.degrees(turned.max()) < 1e-3
+
+
+def _not_round(shapes: list[TrunkShape], offsets: np.ndarray) -> list[TrunkShape]:
+    """Each trunk's axis point moved offsets[i] m towards the camera that saw it: where a circle fitted to the
+    half of an elliptical trunk a side sees puts the centre (towards that side's cameras when the long axis
+    points at them, away when it runs along the row)."""
+    out = []
+    for t, d in zip(shapes, offsets):
+        T = t.T_cam_trunk.copy()
+        to_cam = -T[:3, 3] / np.linalg.norm(T[:3, 3])  # camera frame: from the trunk towards the camera
+        T[:3, 3] += d * to_cam
+        out.append(TrunkShape(t.tree, t.keyframe, T, t.ground_cam))
+    return out
+
+
+@pytest.mark.parametrize("seed", [0, 1, 2, 3])
+def test_trunks_that_are_not_round_do_not_bend_the_sides(seed):
+    """No drift, but each trunk's two halves miss each other across the row by twice its cross-section's
+    offset (2-7 mm, the sign per tree at random, as trunks 3-10 % elliptical give). Part of that no BA can
+    tell from a rigid misplacement of one side (a shift, a turn); what it must not do is bend the sides to
+    close each tree's gap. With the default depth sigma the bend is a third of what it is with the trunks
+    held as tightly across the row as along it."""
+    rng = np.random.default_rng(seed)
+    lean = np.column_stack([np.zeros(6), np.zeros(6), np.ones(6)])
+    front_true, back_true = _poses(-2.0), _poses(2.0)
+    offsets = rng.uniform(0.001, 0.0035, 6) * rng.choice([-1.0, 1.0], 6)  # m, per tree
+    front = SideShapes(front_true, _not_round(_shapes(front_true, rng, lean, 0.0), offsets))
+    back = SideShapes(back_true, _not_round(_shapes(back_true, rng, lean, 0.0), offsets))
+    true_rel = back_true[:, :3, 3] - front_true[:, :3, 3]
+    X = np.column_stack([np.ones(len(back_true)), back_true[:, 0, 3]])  # (n, 2): a rigid misplacement is ~linear in x
+
+    def bend_mm(params: SemanticBAParams) -> float:  # the sides' relative placement off the truth, less its trend
+        res = semantic_bundle_adjust(front, back, params)
+        e = res.back_poses[:, :3, 3] - res.front_poses[:, :3, 3] - true_rel  # (n, 3) m
+        return 1000 * float(np.linalg.norm(e - X @ np.linalg.lstsq(X, e, rcond=None)[0], axis=1).max())
+
+    default = SemanticBAParams()
+    tight = bend_mm(SemanticBAParams(trunk_sigma_depth_m=default.trunk_sigma_across_m))
+    loose = bend_mm(default)
+    assert tight > 1.0  # mm: held tightly, the sides bend
+    assert loose < 0.5 * tight and loose < 2.0
+
+
+@pytest.mark.parametrize("seed", [0, 1])
+def test_the_height_anchor_holds_a_back_side_whose_trunks_sit_on_a_wrong_ground(seed):
+    """The back side fitted no local ground (no shared plane), and its trunks' diameter height came from a
+    wider ground 5 cm off: along their axes they all say the back side sits 5 cm lower. Loose along the axis
+    as they are, nothing else would say otherwise; the initial alignment's height (HeightAnchor) holds it."""
+    rng = np.random.default_rng(seed)
+    lean = np.column_stack([rng.normal(0, 0.02, 6), rng.normal(0, 0.02, 6), np.ones(6)])
+    front_true, back_true = _poses(-2.0), _poses(2.0)
+    lift = make_transform(np.eye(3), np.array([0.0, 0.0, 0.05]))  # in the trunk frame: up the axis
+    back_shapes = [TrunkShape(t.tree, t.keyframe, t.T_cam_trunk @ lift, None) for t in _shapes(back_true, rng, lean)]
+    front = SideShapes(front_true, _shapes(front_true, rng, lean))
+    back = SideShapes(back_true, back_shapes)
+    up = np.array([0.0, 0.0, 1.0])
+    point = back_true[len(back_true) // 2, :3, 3] + np.array([0.0, -2.0, -0.7])  # on the row, at the ground
+    anchor = HeightAnchor(up, point, float(up @ point), 0.02)
+
+    def drop_mm(h: HeightAnchor | None) -> float:  # how far the back side moved down, median over keyframes
+        res = semantic_bundle_adjust(front, back, SemanticBAParams(), h)
+        return -1000 * float(np.median(res.back_poses[:, 2, 3] - back_true[:, 2, 3]))
+
+    assert drop_mm(None) > 30.0
+    assert abs(drop_mm(anchor)) < 5.0
