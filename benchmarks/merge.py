@@ -13,6 +13,8 @@ diameter's MAE beside each side's own.
 Usage:
   python benchmarks/merge.py [--scenarios standard slope_weeds] [--trees 10] [--rate 15] [--seed 0]
         [--workdir /tmp/merge_bench] [--reuse] [--json out.json] [--tile 3 10] [--repeat 5] [--masks]
+        [--sim-set trunk.ellipticity=[0.03,0.1] --tag ellip] [--methods semantic_ba initial]
+        [--variant depth3:semantic_ba.trunk_sigma_depth_m=0.003,semantic_ba.height_sigma_m=0]
 
 Long rows: --tile K also merges the reconstructed sides repeated K times along the row (a 100-tree
 row from a 10-tree one: --trees 10 --tile 10), timed the same way; a simulated 30-tree row takes about
@@ -262,13 +264,26 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--repeat", type=int, default=1,
                     help="time each merge of the tiled rows (and of the row itself) this many times: the median "
                          "is reported (these machines are noisy: one run's 100 / 30 ratio moved 3.2-4.1x)")
+    ap.add_argument("--variant", action="append", default=[], metavar="LABEL:KEY=VALUE[,KEY=VALUE]",
+                    help="also merge with semantic_ba under these settings, e.g. "
+                         "'depth3:semantic_ba.trunk_sigma_depth_m=0.003' or 'no_anchor:semantic_ba.height_sigma_m=0'")
+    ap.add_argument("--methods", nargs="+", default=list(METHODS), help="merge methods for the rows themselves")
     args = ap.parse_args(argv)
+    for spec in args.variant:
+        label, _, sets = spec.partition(":")
+        over: dict[str, Any] = {"merge": {"method": "semantic_ba"}}
+        for kv in filter(None, sets.split(",")):
+            key, value = kv.split("=", 1)
+            section, name = key.strip().split(".", 1)
+            over.setdefault(section, {})[name] = parse_yaml(value)
+        VARIANTS[label] = over
+    methods = [*args.methods, *(spec.partition(":")[0] for spec in args.variant)]
     rows = []
     for sc in args.scenarios:
         gt, sides = case_sides(sc, args)
         for copies in [1, *args.tile]:
             s_k, gt_k = (sides, gt) if copies == 1 else _tiled(sides, gt, copies)
-            for method in METHODS if copies == 1 else args.tile_methods:
+            for method in methods if copies == 1 else args.tile_methods:
                 label = sc if copies == 1 else f"{sc} x{copies}"
                 rows.append({"scenario": label, "trees_in_row": args.trees * copies, **_score(method, s_k, gt_k, args.repeat if method in args.tile_methods else 1)})
                 print(json.dumps(rows[-1]), file=sys.stderr)
