@@ -39,7 +39,7 @@ import numpy as np  # noqa: E402
 from rich.console import Console  # noqa: E402
 from rich.table import Table  # noqa: E402
 
-from orchard_mapping.config import load_config, parse_yaml  # noqa: E402
+from orchard_mapping.config import load_config, parse_sets, unflatten  # noqa: E402
 from orchard_mapping.core.geometry import transform_points  # noqa: E402
 from orchard_mapping.eval.evaluate import trunk_scene_points  # noqa: E402
 from orchard_mapping.eval.ground_truth import load_ground_truth  # noqa: E402
@@ -93,14 +93,10 @@ def add_case_arguments(ap: argparse.ArgumentParser) -> None:
 
 def case_sides(scenario: str, args: argparse.Namespace) -> tuple[Any, dict[str, Any]]:
     """(ground truth, both sides reconstructed with their trunks) of one scenario (add_case_arguments)."""
-    tag = getattr(args, "tag", "")
-    name = f"{scenario}_{args.trees}trees_{args.rate:g}hz_seed{args.seed}" + (f"_{tag}" if tag else "")
+    name = f"{scenario}_{args.trees}trees_{args.rate:g}hz_seed{args.seed}" + (f"_{args.tag}" if args.tag else "")
     sim_dir = args.workdir / name / "sim"
     if not (args.reuse and (sim_dir / "ground_truth.json").is_file()):
-        settings = {"row.n_trees": args.trees, "camera.rate_hz": args.rate}
-        for kv in getattr(args, "sim_set", []):
-            key, value = kv.split("=", 1)
-            settings[key.strip()] = parse_yaml(value)
+        settings = {"row.n_trees": args.trees, "camera.rate_hz": args.rate, **parse_sets(args.sim_set)}
         simulate(load_scenario(scenario, settings), args.seed, sim_dir, force=True)
     return load_ground_truth(sim_dir / "ground_truth.json"), _sides(sim_dir, args.reuse, args.masks)
 
@@ -271,12 +267,7 @@ def main(argv: list[str] | None = None) -> int:
     args = ap.parse_args(argv)
     for spec in args.variant:
         label, _, sets = spec.partition(":")
-        over: dict[str, Any] = {"merge": {"method": "semantic_ba"}}
-        for kv in filter(None, sets.split(",")):
-            key, value = kv.split("=", 1)
-            section, name = key.strip().split(".", 1)
-            over.setdefault(section, {})[name] = parse_yaml(value)
-        VARIANTS[label] = over
+        VARIANTS[label] = unflatten({"merge.method": "semantic_ba", **parse_sets(list(filter(None, sets.split(","))))})
     methods = [*args.methods, *(spec.partition(":")[0] for spec in args.variant)]
     rows = []
     for sc in args.scenarios:

@@ -118,6 +118,18 @@ def parse_yaml(text: str) -> Any:
     return yaml.load(text, Loader=_Yaml12Loader)  # noqa: S506 (a SafeLoader subclass)
 
 
+def parse_sets(items: list[str]) -> dict[str, Any]:
+    """`key.sub=value` pairs -> {dotted key: value}; values parsed as YAML (parse_yaml). ValueError naming the
+    item that has no `=`."""
+    out: dict[str, Any] = {}
+    for item in items:
+        if "=" not in item:
+            raise ValueError(f"--set expects key=value, got '{item}'")
+        key, value = item.split("=", 1)
+        out[key.strip()] = parse_yaml(value)
+    return out
+
+
 def _read_yaml(path: Path) -> dict[str, Any]:
     try:
         data = parse_yaml(path.read_text())

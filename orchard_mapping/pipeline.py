@@ -630,8 +630,7 @@ def merge_sides(front: SideMap, back: SideMap, cfg: OrchardConfig) -> MergeOutco
         h = cfg.trunks.diameter_height_m
         back_poses = it.T_front_back[None] @ back.keyframe_poses
         posts = post_shapes([(front.posts, front.keyframe_poses), (back.posts, back_poses)])
-        by_id = {t.id: t for t in front.trunks}
-        row = _row_direction(np.array([by_id[i].base for i, _ in al.pairs]))  # map = odom_front
+        row = _row_direction(np.array([by_f[i].base for i, _ in al.pairs]))  # map = odom_front
         shapes = (SideShapes(front.keyframe_poses, _trunk_shapes(front, [i for i, _ in al.pairs], np.eye(4), h, row),
                              posts[0]),
                   SideShapes(back_poses, _trunk_shapes(back, [j for _, j in al.pairs], it.T_front_back, h, row),

@@ -35,15 +35,12 @@ def _fail(err: Exception) -> typer.Exit:
 def _parse_sets(sets: list[str]) -> dict[str, Any]:
     """`key.sub=value` pairs; values parsed as YAML as the configuration files are (numbers, lists,
     true/false; on/off and yes/no stay words: `--set merge.method=off` is the method "off")."""
-    from orchard_mapping.config import parse_yaml
+    from orchard_mapping.config import parse_sets
 
-    out: dict[str, Any] = {}
-    for item in sets:
-        if "=" not in item:
-            raise typer.BadParameter(f"--set expects key=value, got '{item}'")
-        key, value = item.split("=", 1)
-        out[key.strip()] = parse_yaml(value)
-    return out
+    try:
+        return parse_sets(sets)
+    except ValueError as err:
+        raise typer.BadParameter(str(err)) from err
 
 
 @app.callback()
