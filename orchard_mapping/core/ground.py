@@ -25,7 +25,7 @@ points and vectors in the side's reconstruction frame (odom_<side>), metres.
 
 from __future__ import annotations
 
-from dataclasses import dataclass, replace
+from dataclasses import dataclass, field, replace
 from typing import Literal
 
 import numpy as np
@@ -136,6 +136,10 @@ class LocalGroundFit:
     # disk is extrapolated to the trunk: its height there is off by about its tilt error times this
     # (10-tree rows: under 1 cm at 0.1-0.25 m, up to 5 cm at 0.4 m), which the merge weighs in.
     support_offset_m: float = float("nan")
+    # (G, 3) m: the ground cells the plane was fitted to (one lower-envelope point each). What the plane
+    # stands for: a side sees part of the disk, and over undulating ground the plane of that part is not the
+    # plane of another part (benchmarks/ground.py scores the fit against the terrain over these cells too).
+    ground_cells: np.ndarray | None = field(default=None, repr=False, compare=False)
 
     def height_of(self, p: np.ndarray) -> np.ndarray:
         """Signed height (m) of points (..., 3) above the plane."""
@@ -354,7 +358,7 @@ def fit_local_ground(points: np.ndarray, axis: np.ndarray, axis_point: np.ndarra
         return None
     fit = _ground_fit(pts, inl, n, d0, up, p_axis, support)
     rel = envelope[on_plane].mean(axis=0) - fit.point
-    return replace(fit, support_offset_m=float(np.linalg.norm(rel - (rel @ n) * n)))
+    return replace(fit, support_offset_m=float(np.linalg.norm(rel - (rel @ n) * n)), ground_cells=envelope[on_plane])
 
 
 def _ground_fit(pts: np.ndarray, inliers: np.ndarray, n: np.ndarray, d0: float, up: np.ndarray,

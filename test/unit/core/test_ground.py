@@ -54,6 +54,25 @@ def test_the_trunk_prior_finds_the_ground_under_weeds_and_beside_leaves(seed):
     assert fit.height_of(base) == pytest.approx(0.0, abs=0.006)
 
 
+@pytest.mark.parametrize("seed", [0, 1])
+def test_the_plane_names_the_ground_cells_it_stands_for(seed):
+    """ground_cells: the ground the plane was fitted to (scored against the terrain under them in
+    benchmarks/ground.py): ground, not weed tops or leaves, spread over the disk, and the plane runs
+    through them."""
+    rng = np.random.default_rng(seed)
+    P, axis, base = scene(rng)
+    params = GroundParams()
+    idx = ground_neighbourhood(P, base + 0.05 * axis, axis, params, trunk_bottom_height=0.0)
+    fit = fit_local_ground(P[idx], axis, base + 0.05 * axis, params, np.random.default_rng(seed))
+    assert fit is not None and fit.ground_cells is not None
+    cells = fit.ground_cells
+    above = cells[:, 2] - _ground_z(*cells[:, :2].T)  # (G,) m above the true ground
+    assert np.all(above < 0.02) and np.all(above > -0.03)  # no weed top (8-40 cm), no leaf (30 cm up)
+    assert len(cells) * 0.04**2 == pytest.approx(fit.support_m2)
+    assert np.ptp(cells[:, 0]) > 0.7 and np.ptp(cells[:, 1]) > 0.7  # the disk, not a patch of it
+    assert np.median(np.abs(fit.height_of(cells))) < 0.006
+
+
 @pytest.mark.parametrize("seed", [0, 1, 2])
 def test_plain_ransac_takes_the_wall_of_leaves(seed):
     """The paper's Fig. cylinderPlane: without the prior, the plane with most points is not the ground."""
