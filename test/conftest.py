@@ -158,3 +158,33 @@ def out_dir(tmp_path):
     d = tmp_path / "out"
     d.mkdir()
     return d
+
+
+def write_constant_detector(path, values, *, outputs=("boxes", "labels", "scores", "masks"), input_shape=None,
+                            input_type=None):
+    """An ONNX model that follows docs/detector.md's contract and returns fixed detections: values maps
+    boxes, labels, scores, masks to arrays (written as outputs named `outputs`, in that order). The input
+    ("image", (3, H, W) float32 unless said) feeds nothing, so the runtime's pre- and post-processing and
+    whatever scores its output are checked exactly."""
+    import numpy as np
+    from onnx import TensorProto, helper, numpy_helper, save
+
+    names = ("boxes", "labels", "scores", "masks")
+    if input_shape is None:
+        input_shape = [3, 48, 64]
+    nodes = [helper.make_node("Constant", [], [out], value=numpy_helper.from_array(np.asarray(values[src]), src))
+             for out, src in zip(outputs, names)]
+    outs = [helper.make_tensor_value_info(o, TensorProto.INT64 if s == "labels" else TensorProto.FLOAT,
+                                          list(np.shape(values[s]))) for o, s in zip(outputs, names)]
+    graph = helper.make_graph(nodes, "const_detector", [helper.make_tensor_value_info(
+        "image", TensorProto.FLOAT if input_type is None else input_type, input_shape)], outs)
+    model = helper.make_model(graph, opset_imports=[helper.make_opsetid("", 17)])
+    model.ir_version = 8
+    save(model, path)
+    return path
+
+
+@pytest.fixture
+def constant_detector():
+    """write_constant_detector (needs the onnx package: tests using it importorskip it)."""
+    return write_constant_detector

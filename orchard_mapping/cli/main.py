@@ -309,6 +309,10 @@ def eval_detector(
         console.print(f"{scores.images} images, {scores.instances} instances: mask AP {scores.ap:.3f}, "
                       f"AP50 {scores.ap50:.3f}, AP75 {scores.ap75:.3f} (trunk {scores.ap_trunk:.3f}, post "
                       f"{scores.ap_post:.3f}); {scores.ms_per_image:.0f} ms per image")
+        console.print(f"AP50 trunk {scores.ap50_trunk:.3f}, post {scores.ap50_post:.3f}, either class "
+                      f"{scores.ap50_any_class:.3f}; AP by mask area (COCO: under 32^2, to 96^2, over 96^2 px; "
+                      f"-1: none) small {scores.ap_small:.3f}, medium {scores.ap_medium:.3f}, "
+                      f"large {scores.ap_large:.3f}")
 
 
 @app.command("config")

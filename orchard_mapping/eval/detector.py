@@ -27,12 +27,21 @@ class DetectorScores:
     ap_trunk: float  # per class, IoU 0.50:0.95 (-1: no instance of that class)
     ap_post: float
     ms_per_image: float  # median onnxruntime + post-processing time
+    ap50_trunk: float = -1.0  # per class at IoU 0.50
+    ap50_post: float = -1.0
+    # COCO's sizes (mask area < 32^2, 32^2-96^2, > 96^2 px), IoU 0.50:0.95, both classes (-1: none of that size).
+    # A trunk behind leaves or weeds is a sliver: where a model loses AP shows here.
+    ap_small: float = -1.0
+    ap_medium: float = -1.0
+    ap_large: float = -1.0
+    # AP50 with the class ignored: a trunk found but called a post counts. Against ap50: what the
+    # confusion of the two classes costs.
+    ap50_any_class: float = -1.0
 
 
 def evaluate_detector(model: str | Path, data: list[Path], threads: int = 2) -> DetectorScores:
     from pycocotools import mask as mask_util
     from pycocotools.coco import COCO
-    from pycocotools.cocoeval import COCOeval
 
     det = OnnxTrunkDetector(model, score_threshold=0.05, threads=threads)
     images, anns, results, times = [], [], [], []
@@ -58,16 +67,30 @@ def evaluate_detector(model: str | Path, data: list[Path], threads: int = 2) -> 
     with contextlib.redirect_stdout(io.StringIO()):
         gt.createIndex()
         dt = gt.loadRes(results) if results else COCO()
-        ev = COCOeval(gt, dt, "segm")
-        ev.evaluate()
-        ev.accumulate()
-        ev.summarize()
-    precision = ev.eval["precision"]  # (T, R, K, A, M)
+        ev = _coco_eval(gt, dt, use_categories=True)
+        agnostic = _coco_eval(gt, dt, use_categories=False)
+    precision = ev.eval["precision"]  # (T, R, K, A, M): IoU thresholds, recall, class, area, max dets
 
-    def class_ap(k: int) -> float:
-        p = precision[:, :, k, 0, -1]
+    def class_ap(k: int, iou: slice = slice(None)) -> float:
+        p = precision[iou, :, k, 0, -1]
         p = p[p > -1]
         return float(p.mean()) if p.size else -1.0
 
+    at50 = slice(0, 1)  # iouThrs[0] == 0.5
     return DetectorScores(len(images), len(anns), float(ev.stats[0]), float(ev.stats[1]), float(ev.stats[2]),
-                          class_ap(0), class_ap(1), float(np.median(times)) * 1000 if times else float("nan"))
+                          class_ap(0), class_ap(1), float(np.median(times)) * 1000 if times else float("nan"),
+                          ap50_trunk=class_ap(0, at50), ap50_post=class_ap(1, at50), ap_small=float(ev.stats[3]),
+                          ap_medium=float(ev.stats[4]), ap_large=float(ev.stats[5]),
+                          ap50_any_class=float(agnostic.stats[1]))
+
+
+def _coco_eval(gt, dt, use_categories: bool):
+    """pycocotools' COCOeval (segm), evaluated, accumulated and summarised (stats filled)."""
+    from pycocotools.cocoeval import COCOeval
+
+    ev = COCOeval(gt, dt, "segm")
+    ev.params.useCats = int(use_categories)
+    ev.evaluate()
+    ev.accumulate()
+    ev.summarize()
+    return ev

@@ -12,7 +12,7 @@ import numpy as np
 import pytest
 
 onnx = pytest.importorskip("onnx")
-from onnx import TensorProto, helper, numpy_helper  # noqa: E402
+from onnx import TensorProto  # noqa: E402
 
 from orchard_mapping.core.detection import CLASS_POST, CLASS_TRUNK, DetectorError, OnnxTrunkDetector  # noqa: E402
 
@@ -27,9 +27,10 @@ def _masks() -> np.ndarray:
     return m
 
 
-def _model(path: Path, *, outputs: tuple[str, ...] = ("boxes", "labels", "scores", "masks"),
+def _model(write, path: Path, *, outputs: tuple[str, ...] = ("boxes", "labels", "scores", "masks"),
            input_shape: list = [3, H, W], input_type: int = TensorProto.FLOAT, box_masks: bool = False,
            values: dict[str, np.ndarray] | None = None) -> Path:
+    """write: the constant_detector fixture (test/conftest.py)."""
     values = values or {
         "boxes": np.array([[20, 10, 30, 40], [50, 5, 56, 45], [0, 0, 10, 10]], np.float32),
         "labels": np.array([CLASS_TRUNK, CLASS_POST, CLASS_TRUNK], np.int64),
@@ -37,22 +38,11 @@ def _model(path: Path, *, outputs: tuple[str, ...] = ("boxes", "labels", "scores
         # box-relative masks (Mask R-CNN's 28 x 28 per box) or masks pasted into the input image
         "masks": np.full((3, 1, 28, 28), 0.9, np.float32) if box_masks else _masks(),
     }
-    names = ("boxes", "labels", "scores", "masks")
-    nodes = [helper.make_node("Constant", [], [out], value=numpy_helper.from_array(values[src], src))
-             for out, src in zip(outputs, names)]
-    # The input feeds an output-free branch so that it is a real graph input.
-    outs = [helper.make_tensor_value_info(o, TensorProto.FLOAT if s not in ("labels",) else TensorProto.INT64,
-                                          list(values[s].shape)) for o, s in zip(outputs, names)]
-    graph = helper.make_graph(nodes, "const_detector", [helper.make_tensor_value_info("image", input_type, input_shape)],
-                              outs)
-    model = helper.make_model(graph, opset_imports=[helper.make_opsetid("", 17)])
-    model.ir_version = 8
-    onnx.save(model, path)
-    return path
+    return write(path, values, outputs=outputs, input_shape=input_shape, input_type=input_type)
 
 
-def test_detections_are_thresholded_and_mapped_back_to_the_frame(tmp_path):
-    det = OnnxTrunkDetector(_model(tmp_path / "m.onnx"), score_threshold=0.5, mask_threshold=0.5)
+def test_detections_are_thresholded_and_mapped_back_to_the_frame(tmp_path, constant_detector):
+    det = OnnxTrunkDetector(_model(constant_detector, tmp_path / "m.onnx"), score_threshold=0.5, mask_threshold=0.5)
     frame = np.zeros((2 * H, 2 * W, 3), np.uint8)  # twice the model's input: results scaled by 2
     out = det.detect(frame)
     assert [d.class_id for d in out] == [CLASS_TRUNK, CLASS_POST]
@@ -64,7 +54,7 @@ def test_detections_are_thresholded_and_mapped_back_to_the_frame(tmp_path):
     assert len(OnnxTrunkDetector(tmp_path / "m.onnx", score_threshold=0.75).detect(frame)) == 1
 
 
-def test_a_second_detection_of_part_of_a_trunk_is_dropped(tmp_path):
+def test_a_second_detection_of_part_of_a_trunk_is_dropped(tmp_path, constant_detector):
     """Box NMS lets through a half-trunk beside the whole one (box IoU 0.5); its mask lies inside the
     better-scored trunk's and is dropped. A post touching the trunk keeps its own mask."""
     m = np.zeros((3, 1, H, W), np.float32)
@@ -76,14 +66,14 @@ def test_a_second_detection_of_part_of_a_trunk_is_dropped(tmp_path):
               "scores": np.array([0.9, 0.7, 0.8], np.float32),
               "masks": m}
     frame = np.zeros((H, W, 3), np.uint8)
-    out = OnnxTrunkDetector(_model(tmp_path / "m.onnx", values=values)).detect(frame)
+    out = OnnxTrunkDetector(_model(constant_detector, tmp_path / "m.onnx", values=values)).detect(frame)
     assert [(d.class_id, int(d.mask.sum())) for d in out] == [(CLASS_TRUNK, 300), (CLASS_POST, 180)]
     kept = OnnxTrunkDetector(tmp_path / "m.onnx", max_overlap=1.0).detect(frame)  # suppression off
     assert sorted(d.score for d in kept) == pytest.approx([0.7, 0.8, 0.9])
 
 
-def test_box_relative_masks_are_pasted_into_their_boxes(tmp_path):
-    det = OnnxTrunkDetector(_model(tmp_path / "m.onnx", box_masks=True))
+def test_box_relative_masks_are_pasted_into_their_boxes(tmp_path, constant_detector):
+    det = OnnxTrunkDetector(_model(constant_detector, tmp_path / "m.onnx", box_masks=True))
     out = det.detect(np.zeros((2 * H, 2 * W, 3), np.uint8))
     assert [d.class_id for d in out] == [CLASS_TRUNK, CLASS_POST]
     v, u = np.nonzero(out[0].mask)
@@ -91,7 +81,7 @@ def test_box_relative_masks_are_pasted_into_their_boxes(tmp_path):
     assert out[0].mask.sum() == 20 * 60
 
 
-def test_a_missing_or_broken_model_is_one_typed_error_naming_the_file(tmp_path):
+def test_a_missing_or_broken_model_is_one_typed_error_naming_the_file(tmp_path, constant_detector):
     with pytest.raises(DetectorError, match=r"nope\.onnx: no such file"):
         OnnxTrunkDetector(tmp_path / "nope.onnx")
     bad = tmp_path / "text.onnx"
@@ -100,17 +90,17 @@ def test_a_missing_or_broken_model_is_one_typed_error_naming_the_file(tmp_path):
         OnnxTrunkDetector(bad)
 
 
-def test_models_that_break_the_contract_are_named(tmp_path):
+def test_models_that_break_the_contract_are_named(tmp_path, constant_detector):
     with pytest.raises(DetectorError, match=r"outputs \['masks'\] missing"):
-        OnnxTrunkDetector(_model(tmp_path / "a.onnx", outputs=("boxes", "labels", "scores", "segm")))
+        OnnxTrunkDetector(_model(constant_detector, tmp_path / "a.onnx", outputs=("boxes", "labels", "scores", "segm")))
     with pytest.raises(DetectorError, match=r"input 'image' must have shape"):
-        OnnxTrunkDetector(_model(tmp_path / "b.onnx", input_shape=[H, W]))
+        OnnxTrunkDetector(_model(constant_detector, tmp_path / "b.onnx", input_shape=[H, W]))
     with pytest.raises(DetectorError, match=r"input 'image' must be float32"):
-        OnnxTrunkDetector(_model(tmp_path / "c.onnx", input_type=TensorProto.UINT8))
+        OnnxTrunkDetector(_model(constant_detector, tmp_path / "c.onnx", input_type=TensorProto.UINT8))
 
 
-def test_an_image_of_the_wrong_type_is_named(tmp_path):
-    det = OnnxTrunkDetector(_model(tmp_path / "m.onnx"))
+def test_an_image_of_the_wrong_type_is_named(tmp_path, constant_detector):
+    det = OnnxTrunkDetector(_model(constant_detector, tmp_path / "m.onnx"))
     with pytest.raises(DetectorError, match=r"keyframe 7: expected an \(H, W, 3\) uint8 RGB image, got float32"):
         det.detect(np.zeros((H, W, 3), np.float32), where="keyframe 7")
     with pytest.raises(DetectorError, match="got uint8 \\(48, 64\\)"):
