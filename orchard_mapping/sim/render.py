@@ -230,12 +230,23 @@ class SensorModel:
     flying_pixels: float
     color_noise_sd: float
     exposure_jitter: float
+    depth_noise_correlation_px: float = 0.0  # sd (px) of the Gaussian the depth noise is correlated over; 0: white
 
     @classmethod
     def from_camera(cls, c: CameraSpec) -> "SensorModel":
         """The sensor model a scenario's camera section describes."""
         return cls(c.depth_sigma_coeff, c.depth_min_m, c.depth_max_m, c.dropout, c.edge_missing, c.flying_pixels,
-                   c.color_noise_sd, c.exposure_jitter)
+                   c.color_noise_sd, c.exposure_jitter, c.depth_noise_correlation_px)
+
+    def depth_noise(self, shape: tuple[int, int], rng: np.random.Generator) -> np.ndarray:
+        """(H, W) float32 unit-sd noise field: white, or white noise blurred by a Gaussian of
+        depth_noise_correlation_px and scaled back to unit sd (filtered white noise has variance
+        1 / (4 pi s^2) for a kernel of sd s px)."""
+        white = rng.standard_normal(shape, dtype=np.float32)
+        s = self.depth_noise_correlation_px
+        if s <= 0:
+            return white
+        return cv2.GaussianBlur(white, (0, 0), s, borderType=cv2.BORDER_REFLECT) * np.float32(np.sqrt(4 * np.pi) * s)
 
     def apply(self, out: RenderOutput, rng: np.random.Generator) -> tuple[np.ndarray, np.ndarray]:
         """Noisy (color uint8 (H, W, 3), depth float32 metres (H, W), 0 = missing)."""
@@ -248,7 +259,7 @@ class SensorModel:
         thresh = 0.03 + 0.03 * z
         edge = valid & np.any(jump > thresh[None], axis=0)
         far = np.max(np.where(jump > thresh[None], neigh, 0.0), axis=0)
-        noisy = z + rng.standard_normal(z.shape, dtype=np.float32) * np.float32(self.depth_sigma_coeff) * z * z
+        noisy = z + self.depth_noise(z.shape, rng) * np.float32(self.depth_sigma_coeff) * z * z
         u = rng.random(z.shape, dtype=np.float32)
         fly = edge & (u < self.flying_pixels)
         far = np.where(far > 50.0, z + 1.5, far)  # edge against the sky: fly towards the far range

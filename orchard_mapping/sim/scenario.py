@@ -89,6 +89,10 @@ class CameraSpec(_S):
     depth_min_m: float = 0.2
     depth_max_m: float = 6.0
     depth_sigma_coeff: float = Field(0.004, ge=0.0)  # depth noise sd = coeff * z^2 (m), RealSense-like
+    # px, sd of the Gaussian over which the depth noise is correlated (0: independent per pixel). A stereo
+    # camera matches windows of pixels, so its error comes in patches, not pixel by pixel, and a fit over
+    # many pixels does not average it away as it would white noise. Same sd per pixel either way.
+    depth_noise_correlation_px: float = Field(0.0, ge=0.0, le=50.0)
     dropout: float = Field(0.01, ge=0.0, le=1.0)  # random missing depth
     edge_missing: float = Field(0.35, ge=0.0, le=1.0)  # missing depth at depth edges
     flying_pixels: float = Field(0.3, ge=0.0, le=1.0)  # edge pixels mixed between fore- and background

@@ -228,3 +228,27 @@ def test_front_back_transform(standard_sim):
     for side, T in (("front", T_wf), ("back", T_wb)):
         _, poses = standard_sim.world_poses(side)
         np.testing.assert_allclose(poses[0], T, atol=1e-6)
+
+
+def test_correlated_depth_noise_keeps_its_sd_and_comes_in_patches():
+    """camera.depth_noise_correlation_px: the same per-pixel sd as white noise, but neighbouring pixels err
+    together (a stereo camera's matching window), so a mean over a patch keeps most of the error."""
+    from orchard_mapping.sim.render import SensorModel
+    from orchard_mapping.sim.scenario import CameraSpec
+
+    def field(corr: float, seed: int) -> np.ndarray:
+        sensor = SensorModel.from_camera(CameraSpec(depth_noise_correlation_px=corr))
+        return sensor.depth_noise((480, 640), np.random.default_rng(seed))
+
+    white = field(0.0, 1)
+    np.testing.assert_array_equal(white, np.random.default_rng(1).standard_normal((480, 640), dtype=np.float32))
+    for seed in (1, 2):
+        patchy = field(4.0, seed)
+        assert 0.9 < patchy.std() < 1.1
+        # neighbours 2 px apart: r = exp(-d^2 / (4 s^2)) = 0.94 for s = 4; white: ~0
+        r_patchy = np.corrcoef(patchy[:, :-2].ravel(), patchy[:, 2:].ravel())[0, 1]
+        r_white = np.corrcoef(white[:, :-2].ravel(), white[:, 2:].ravel())[0, 1]
+        assert r_patchy > 0.85 and abs(r_white) < 0.02
+        # the mean over 16 x 16 px blocks: white noise shrinks 16-fold, patchy noise far less
+        blocks = lambda f: f.reshape(30, 16, 40, 16).mean(axis=(1, 3)).std()  # noqa: E731
+        assert blocks(white) < 0.1 and blocks(patchy) > 0.3
