@@ -277,8 +277,9 @@ def finish_side(job: SideHandover, timings: Timings, detect: Detect | None = Non
                                           loops=loops, **asdict(cfg.ba))
     timings.add(f"bundle_adjustment_{side}", time.perf_counter() - t0)
     release_freed_memory()
-    log.info("%s: %d keyframes, %d landmarks used, BA error %.1f -> %.1f in %d iterations", side,
-             len(fe.keyframes), ba.n_landmarks_used, ba.initial_error, ba.final_error, ba.iterations)
+    log.info("%s: %d keyframes, %d landmarks used, BA error %.1f -> %.1f in %d iterations; disparity residuals' "
+             "sd %.3f px (weighted as %.3f px)", side, len(fe.keyframes), ba.n_landmarks_used, ba.initial_error,
+             ba.final_error, ba.iterations, ba.disparity_residual_sd, cfg.ba.disparity_sigma)
     points = np.zeros((0, 3), np.float32)
     colors = np.zeros((0, 3), np.uint8)
     trunks: list[TrunkLandmark] = []

@@ -50,6 +50,7 @@ __all__ = [
     "ReconstructionError",
     "bundle_adjust",
     "default_disparity_sigma",
+    "disparity_residual_sd",
     "optimise_pose_graph",
 ]
 
@@ -76,6 +77,9 @@ class BAResult:
     n_factors: int  # factors in the graph (priors included)
     n_landmarks_used: int  # landmarks that entered the graph
     seconds: float  # s, graph building + optimisation
+    # px: robust sd (1.4826 MAD) of the disparity residuals at the solution (NaN: no depth term; windowed:
+    # the largest of the windows'). How noisy the depth was, against the weights (docs/front_end.md).
+    disparity_residual_sd: float = float("nan")
 
 
 @dataclass(frozen=True)
@@ -260,6 +264,21 @@ def _optimise(
     iterations = int(optimizer.iterations())
     logger.info("%s: error %.6g -> %.6g in %d iterations", what, initial_error, final_error, iterations)
     return result, initial_error, final_error, iterations
+
+
+def disparity_residual_sd(poses: np.ndarray, landmarks: np.ndarray, kf: np.ndarray, lm: np.ndarray,
+                          depth: np.ndarray, fx: float, baseline_m: float) -> float:
+    """Robust sd (1.4826 MAD, px) of the disparity residuals of the depth observations (depth > 0): measured
+    disparity fx b / depth against that of the landmark in the keyframe. poses (K, 4, 4) T_odom_cam, landmarks
+    (L, 3) odom; kf, lm, depth (M,) per observation. NaN with fewer than 10 usable ones."""
+    use = (depth > 0) & np.isfinite(landmarks[lm]).all(axis=1)  # (M,)
+    T_cam_odom = np.linalg.inv(poses[kf[use]])  # (n, 4, 4)
+    z = np.einsum("nj,nj->n", T_cam_odom[:, 2, :3], landmarks[lm[use]]) + T_cam_odom[:, 2, 3]  # (n,) m
+    ok = z > 1e-3
+    r = fx * baseline_m * (1.0 / depth[use][ok] - 1.0 / z[ok])  # (n,) px
+    if len(r) < 10:
+        return float("nan")
+    return float(1.4826 * np.median(np.abs(r - np.median(r))))
 
 
 def _poses_from(values: gtsam.Values, n: int) -> np.ndarray:
@@ -486,10 +505,11 @@ def bundle_adjust(
     out_lm = np.full((n_lm, 3), np.nan)  # (L, 3)
     for j in np.flatnonzero(used_lm):
         out_lm[j] = result.atPoint3(L(int(j)))
+    out_poses = _poses_from(result, n_kf)
     seconds = time.perf_counter() - t0
     logger.info("%s: %.3f s", what, seconds)
     return BAResult(
-        poses=_poses_from(result, n_kf),
+        poses=out_poses,
         landmarks=out_lm,
         initial_error=e0,
         final_error=e1,
@@ -497,6 +517,7 @@ def bundle_adjust(
         n_factors=int(graph.size()),
         n_landmarks_used=int(used_lm.sum()),
         seconds=seconds,
+        disparity_residual_sd=disparity_residual_sd(out_poses, out_lm, kf, lm, depth, intr.fx, baseline_m),
     )
 
 
@@ -538,6 +559,7 @@ def bundle_adjust_windowed(
     out_lm = np.full_like(landmarks, np.nan)  # (L, 3)
     e0 = e1 = 0.0
     iters = n_factors = 0
+    resid_sd = []  # per window
     a, done, last_b = 0, 0, 0
     used_loops: set[int] = set()
     while True:
@@ -564,6 +586,7 @@ def bundle_adjust_windowed(
         out_lm[ids[ok]] = res.landmarks[ok]
         e0, e1 = e0 + res.initial_error, e1 + res.final_error
         iters, n_factors = max(iters, res.iterations), n_factors + res.n_factors
+        resid_sd.append(res.disparity_residual_sd)
         last_b = b
         if b == n_kf:
             break
@@ -582,4 +605,5 @@ def bundle_adjust_windowed(
     seconds = time.perf_counter() - t0
     logger.info("windowed bundle adjustment (%d keyframes, windows of %d): %.3f s", n_kf, window, seconds)
     return BAResult(poses=out, landmarks=out_lm, initial_error=e0, final_error=e1, iterations=iters,
-                    n_factors=n_factors, n_landmarks_used=int(np.isfinite(out_lm).all(axis=1).sum()), seconds=seconds)
+                    n_factors=n_factors, n_landmarks_used=int(np.isfinite(out_lm).all(axis=1).sum()), seconds=seconds,
+                    disparity_residual_sd=float(np.nanmax(resid_sd)) if np.isfinite(resid_sd).any() else float("nan"))

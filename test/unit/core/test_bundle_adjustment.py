@@ -24,6 +24,7 @@ from orchard_mapping.core.bundle_adjustment import (
     bundle_adjust,
     bundle_adjust_windowed,
     default_disparity_sigma,
+    disparity_residual_sd,
     optimise_pose_graph,
 )
 from orchard_mapping.core.geometry import path_length, umeyama
@@ -232,6 +233,23 @@ def test_huber_keeps_ba_accurate_with_outliers(side_outliers, accuracy):
     accuracy.at_least("ATE drifted / after robust BA with outliers", ate0 / ate_r, 5)
     accuracy.at_most("ATE after robust BA with outliers, fraction of path", ate_r / path, 0.001)
     assert ate_r < ate_p
+
+
+def test_the_depth_residuals_say_how_noisy_the_depth_was(side, rgbd_result):
+    """disparity_residual_sd: at the true poses and landmarks the planted depth noise (0.004 z^2, i.e.
+    0.004 fx b = 0.123 px of disparity) comes back, twice the noise gives twice the sd, and the BA's own
+    residuals are somewhat smaller (each landmark's depth is fitted to its observations)."""
+    o = side.obs
+    pure = default_disparity_sigma(INTR.fx, 0.05)  # px
+    sd = disparity_residual_sd(side.truth, side.points, o.keyframe, o.landmark, o.depth, INTR.fx, 0.05)
+    assert sd == pytest.approx(pure, rel=0.1)
+    T_cam_odom = np.linalg.inv(side.truth[o.keyframe])  # (M, 4, 4)
+    z = np.einsum("mj,mj->m", T_cam_odom[:, 2, :3], side.points[o.landmark]) + T_cam_odom[:, 2, 3]  # (M,)
+    doubled = np.where(o.depth > 0, z + 2.0 * (o.depth - z), 0.0)
+    sd2 = disparity_residual_sd(side.truth, side.points, o.keyframe, o.landmark, doubled, INTR.fx, 0.05)
+    assert sd2 == pytest.approx(2 * pure, rel=0.1)
+    res, _ = rgbd_result
+    assert 0.5 * pure < res.disparity_residual_sd < 1.05 * pure
 
 
 def test_default_disparity_sigma_matches_realsense_depth_noise():
