@@ -249,6 +249,15 @@ class SideHandover:
     seconds: float  # s spent in the front end
 
 
+# The disparity sd the bundle adjustment should assume, per px of its disparity residuals' robust sd, and how far
+# above ba.disparity_sigma that must be before the run says so. 10-tree standard row, each side's drift: white
+# depth noise (residuals 0.05 px): 0.5 px best (1.0: 36 -> 45 mm); noise in 6 px patches at twice the sd
+# (0.19 px): 93 / 58 mm at 0.5, 66 / 52 at 1.0, 41 / 42 at 2.0; 4 px patches (0.10 px): 25 / 38 mm at 0.5,
+# 19 / 44 at 1.0, no gain, hence the margin (docs/front_end.md).
+DISPARITY_SIGMA_PER_RESIDUAL_SD = 10.0
+DISPARITY_HINT_RATIO = 3.0
+
+
 def finish_side(job: SideHandover, timings: Timings, detect: Detect | None = None) -> SideMap:
     """Loop detection, pose graph, bundle adjustment, TSDF fusion with trunk detection, trunk cylinders and
     local grounds: the side map. detect: None for the configured detector in this process."""
@@ -280,6 +289,12 @@ def finish_side(job: SideHandover, timings: Timings, detect: Detect | None = Non
     log.info("%s: %d keyframes, %d landmarks used, BA error %.1f -> %.1f in %d iterations; disparity residuals' "
              "sd %.3f px (weighted as %.3f px)", side, len(fe.keyframes), ba.n_landmarks_used, ba.initial_error,
              ba.final_error, ba.iterations, ba.disparity_residual_sd, cfg.ba.disparity_sigma)
+    suggested = DISPARITY_SIGMA_PER_RESIDUAL_SD * ba.disparity_residual_sd
+    if np.isfinite(suggested) and suggested > DISPARITY_HINT_RATIO * cfg.ba.disparity_sigma:
+        log.warning("%s: the depth is noisier than ba.disparity_sigma (%.2f px) assumes: its residuals spread %.3f px. "
+                    "On simulated rows with such depth, ba.disparity_sigma of about %g times that (--set "
+                    "ba.disparity_sigma=%.1f) cut each side's drift by a quarter to a half (docs/front_end.md)", side,
+                    cfg.ba.disparity_sigma, ba.disparity_residual_sd, DISPARITY_SIGMA_PER_RESIDUAL_SD, suggested)
     points = np.zeros((0, 3), np.float32)
     colors = np.zeros((0, 3), np.uint8)
     trunks: list[TrunkLandmark] = []
