@@ -252,7 +252,7 @@ class SideHandover:
 # The disparity sd the bundle adjustment should assume, per px of its disparity residuals' robust sd, and how far
 # above ba.disparity_sigma that must be before the run says so. 10-tree standard row, each side's drift: white
 # depth noise (residuals 0.05 px): 0.5 px best (1.0: 36 -> 45 mm); noise in 6 px patches at twice the sd
-# (0.19 px): 93 / 58 mm at 0.5, 66 / 52 at 1.0, 41 / 42 at 2.0; 4 px patches (0.10 px): 25 / 38 mm at 0.5,
+# (0.19 px), back / front: 93 / 58 mm at 0.5, 66 / 53 at 1.0, 41 / 42 at 2.0; 4 px patches (0.10 px): 25 / 38 mm at 0.5,
 # 19 / 44 at 1.0, no gain, hence the margin (docs/front_end.md).
 DISPARITY_SIGMA_PER_RESIDUAL_SD = 10.0
 DISPARITY_HINT_RATIO = 3.0
