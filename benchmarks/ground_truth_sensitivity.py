@@ -29,7 +29,6 @@ import orchard_mapping.sim.simulate as sim_module
 import orchard_mapping.sim.truth as truth
 from orchard_mapping.eval.landmarks import _plane_errors
 from orchard_mapping.sim.scenario import load_scenario
-from orchard_mapping.sim.scene import terrain_plane
 
 console = Console()
 RANGES_M = (2.0, 2.5, 3.0)
@@ -46,12 +45,9 @@ class CountingAccumulator(truth.VisibilityAccumulator):
 
     def add(self, out: Any, T_world_cam: np.ndarray) -> None:
         super().add(out, T_world_cam)
-        own = self.ground_cells
         ground = (out.cls.ravel() == truth.Cls.GROUND) & (out.depth.ravel() > 0)
         for r, cells in self.cells_by_range.items():
-            self.ground_cells = cells  # _add_ground counts into self.ground_cells
-            self._add_ground(out.points.reshape(-1, 3)[ground & (out.depth.ravel() <= r)])
-        self.ground_cells = own
+            self._add_ground(out.points.reshape(-1, 3)[ground & (out.depth.ravel() <= r)], cells)
 
 
 ACCUMULATORS: list[CountingAccumulator] = []
@@ -59,14 +55,9 @@ ACCUMULATORS: list[CountingAccumulator] = []
 
 def seen_plane(acc: CountingAccumulator, tree: Any, range_m: float, min_frames: int
                ) -> tuple[np.ndarray, np.ndarray] | None:
-    """The truth's seen-ground plane of one tree (sim.truth.seen_local_ground) under other thresholds."""
-    i, j = np.nonzero(acc.cells_by_range[range_m][tree.id] >= min_frames)
-    if len(i) < truth.GROUND_MIN_CELLS:
-        return None
-    r, c = truth.LOCAL_GROUND_RADIUS_M, truth.GROUND_CELL_M
-    x = tree.ground_point[0] - r + (i + 0.5) * c
-    y = tree.ground_point[1] - r + (j + 0.5) * c
-    return terrain_plane(acc.scene.terrain, x, y, float(tree.ground_point[0]), float(tree.ground_point[1]))
+    """The truth's seen-ground plane of one tree (point, normal) under other thresholds."""
+    plane = acc.seen_ground_plane(tree, acc.cells_by_range[range_m], min_frames)
+    return None if plane is None else plane[:2]
 
 
 def main(argv: list[str] | None = None) -> int:

@@ -131,9 +131,11 @@ class VisibilityAccumulator:
         top = h >= self.height[tid] - TOP_BAND_M
         self.top_seen[np.unique(tid[top])] = True
 
-    def _add_ground(self, pts: np.ndarray) -> None:
-        """Mark the terrain cells around each tree that these ground hit points (N, 3) fall in."""
-        n_c = self.ground_cells.shape[1]
+    def _add_ground(self, pts: np.ndarray, cells: np.ndarray | None = None) -> None:
+        """Mark the terrain cells around each tree that these ground hit points (N, 3) fall in: in `cells`
+        (T, C, C) frame counts, the side's own ground_cells unless given."""
+        cells = self.ground_cells if cells is None else cells
+        n_c = cells.shape[1]
         # Points sorted along the row's longer horizontal axis: each tree then looks only at the slice within
         # the radius along that axis (a whole-frame pass per tree took 8 ms a tree at 640x480).
         axis = int(np.argmax(np.ptp(self.gp[:, :2], axis=0))) if len(self.gp) > 1 else 0
@@ -150,19 +152,31 @@ class VisibilityAccumulator:
             if not len(d):
                 continue
             ij = np.unique(np.clip(((d + LOCAL_GROUND_RADIUS_M) / GROUND_CELL_M).astype(int), 0, n_c - 1), axis=0)
-            self.ground_cells[t, ij[:, 0], ij[:, 1]] += 1
+            cells[t, ij[:, 0], ij[:, 1]] += 1
 
-    def seen_local_ground(self, tree: TreeGeom) -> dict | None:
-        """The least-squares terrain plane over the cells of the tree's local ground this side saw."""
-        i, j = np.nonzero(self.ground_cells[tree.id] >= GROUND_MIN_FRAMES)
+    def seen_ground_plane(self, tree: TreeGeom, cells: np.ndarray | None = None,
+                          min_frames: int = GROUND_MIN_FRAMES) -> tuple[np.ndarray, np.ndarray, int] | None:
+        """(point under the trunk (3,), unit up normal (3,), cells used): the least-squares terrain plane over
+        the cells of the tree's local ground seen in at least `min_frames` frames (counts `cells` (T, C, C),
+        the side's own ground_cells unless given); None with fewer than GROUND_MIN_CELLS such cells."""
+        cells = self.ground_cells if cells is None else cells
+        i, j = np.nonzero(cells[tree.id] >= min_frames)
         if len(i) < GROUND_MIN_CELLS:
             return None
         x = tree.ground_point[0] - LOCAL_GROUND_RADIUS_M + (i + 0.5) * GROUND_CELL_M
         y = tree.ground_point[1] - LOCAL_GROUND_RADIUS_M + (j + 0.5) * GROUND_CELL_M
         point, n = terrain_plane(self.scene.terrain, x, y, float(tree.ground_point[0]), float(tree.ground_point[1]))
+        return point, n, len(i)
+
+    def seen_local_ground(self, tree: TreeGeom) -> dict | None:
+        """The least-squares terrain plane over the cells of the tree's local ground this side saw."""
+        plane = self.seen_ground_plane(tree)
+        if plane is None:
+            return None
+        point, n, used = plane
         disk = np.pi * LOCAL_GROUND_RADIUS_M**2 / GROUND_CELL_M**2
         return {"point": np.round(point, 5).tolist(), "normal": np.round(n, 6).tolist(),
-                "seen_fraction": round(min(1.0, len(i) / disk), 4)}
+                "seen_fraction": round(min(1.0, used / disk), 4)}
 
     def summary(self, tree: TreeGeom) -> dict:
         leaves = tree.leaf_tri
