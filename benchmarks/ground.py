@@ -108,12 +108,15 @@ def link_to_truth(sim_dir: Path, side: str, rec: dict[str, Any]) -> list[dict[st
     return out
 
 
+DEFAULT_METHOD = "ground surface"  # the configured fit: its error is also split (errors with the terrain)
+
+
 def methods() -> dict[str, Callable[[dict[str, Any], int], Any]]:
     surface = load_config().ground
     plane_refit = replace(surface, refine_surface="plane", refine_band_m=0.05, refine_iterations=5, iterations=300)
     lowest = replace(surface, cell_surface_band_m=0.0)
     return {
-        "ground surface": lambda c, s: fit_local_ground(c["points"].astype(float), c["axis"], c["axis_point"], surface,
+        DEFAULT_METHOD: lambda c, s: fit_local_ground(c["points"].astype(float), c["axis"], c["axis_point"], surface,
                                                         np.random.default_rng(s)),
         "lowest samples' height": lambda c, s: fit_local_ground(c["points"].astype(float), c["axis"], c["axis_point"],
                                                                 lowest, np.random.default_rng(s)),
@@ -124,10 +127,14 @@ def methods() -> dict[str, Callable[[dict[str, Any], int], Any]]:
     }
 
 
-def errors(calls: list[dict[str, Any]], fit_fn: Callable[[dict[str, Any], int], Any], draws: int
-           ) -> tuple[np.ndarray, int]:
-    """((F, 2) normal error deg and signed height error mm of every fit, fits that gave no plane)."""
+def errors(calls: list[dict[str, Any]], fit_fn: Callable[[dict[str, Any], int], Any], draws: int,
+           terrain: Any = None) -> tuple[np.ndarray, int, dict[str, np.ndarray] | None]:
+    """((F, 2) normal error deg and signed height error mm of every fit, fits that gave no plane, the split):
+    with the scene's `terrain`, the same fits' error split in two (module docstring), {"own cells": (F, 2)
+    the fit against the exact terrain plane over its own ground cells, "cells vs truth": (F, 2) that plane
+    against the truth (the plane of the terrain over the cells the simulator counts as seen)}; else None."""
     errs, none = [], 0
+    split: dict[str, list] = {"own cells": [], "cells vs truth": []}
     for c in calls:
         for s in range(draws):
             fit = fit_fn(c, s)
@@ -135,28 +142,15 @@ def errors(calls: list[dict[str, Any]], fit_fn: Callable[[dict[str, Any], int], 
                 none += 1
                 continue
             T, (p_t, n_t) = c["T"], c["seen"]
-            errs.append(_plane_errors(T[:3, :3] @ fit.normal, T[:3, :3] @ fit.point + T[:3, 3], p_t, n_t))
-    return np.array(errs).reshape(-1, 2), none
-
-
-def own_cells_errors(calls: list[dict[str, Any]], terrain: Any, draws: int) -> tuple[np.ndarray, np.ndarray]:
-    """The default fit's error split in two (module docstring), ((F, 2), (F, 2)): normal error deg and signed
-    height error mm of the fit against the exact terrain plane over its own ground cells, and of that plane
-    against the truth (the plane of the terrain over the cells the simulator counts as seen)."""
-    surface = load_config().ground
-    own, cells_vs_truth = [], []
-    for c in calls:
-        for s in range(draws):
-            fit = fit_local_ground(c["points"].astype(float), c["axis"], c["axis_point"], surface,
-                                   np.random.default_rng(s))
-            if fit is None or fit.ground_cells is None:
-                continue
-            T, (p_t, n_t) = c["T"], c["seen"]
-            w = fit.ground_cells @ T[:3, :3].T + T[:3, 3]  # (G, 3) world
-            p_c, n_c = terrain_plane(terrain, w[:, 0], w[:, 1], float(p_t[0]), float(p_t[1]))
-            own.append(_plane_errors(T[:3, :3] @ fit.normal, T[:3, :3] @ fit.point + T[:3, 3], p_c, n_c))
-            cells_vs_truth.append(_plane_errors(n_c, p_c, p_t, n_t))
-    return np.array(own).reshape(-1, 2), np.array(cells_vs_truth).reshape(-1, 2)
+            n_w, p_w = T[:3, :3] @ fit.normal, T[:3, :3] @ fit.point + T[:3, 3]
+            errs.append(_plane_errors(n_w, p_w, p_t, n_t))
+            if terrain is not None and fit.ground_cells is not None:
+                w = fit.ground_cells @ T[:3, :3].T + T[:3, 3]  # (G, 3) world
+                p_c, n_c = terrain_plane(terrain, w[:, 0], w[:, 1], float(p_t[0]), float(p_t[1]))
+                split["own cells"].append(_plane_errors(n_w, p_w, p_c, n_c))
+                split["cells vs truth"].append(_plane_errors(n_c, p_c, p_t, n_t))
+    out = {k: np.array(v).reshape(-1, 2) for k, v in split.items()} if terrain is not None else None
+    return np.array(errs).reshape(-1, 2), none, out
 
 
 def summary(e: np.ndarray, none: int) -> dict[str, Any]:
@@ -166,7 +160,9 @@ def summary(e: np.ndarray, none: int) -> dict[str, Any]:
             "none": none, "median_deg": float(np.median(deg)) if len(deg) else None,
             "max_deg": float(deg.max()) if len(deg) else None,
             "median_height_mm": float(np.median(e[:, 1])) if len(deg) else None,
-            "height_mae_mm": float(np.mean(mm)) if len(deg) else None}
+            "height_mae_mm": float(np.mean(mm)) if len(deg) else None,
+            "median_abs_height_mm": float(np.median(mm)) if len(deg) else None,
+            "max_abs_height_mm": float(mm.max()) if len(deg) else None}
 
 
 def main(argv: list[str] | None = None) -> int:
@@ -183,7 +179,7 @@ def main(argv: list[str] | None = None) -> int:
 
     fits = methods()
     rows = []
-    split_rows = []  # the default fit's error split (own_cells_errors)
+    split_rows = []  # the default fit's error split (errors with the terrain)
     pooled: dict[tuple[str, str], tuple[np.ndarray, int]] = {}
     n_calls: dict[str, int] = {}
     for sc in args.scenarios:
@@ -196,16 +192,15 @@ def main(argv: list[str] | None = None) -> int:
             for side in SIDES:
                 rec = record_side(sim_dir, side, case_dir / f"ground_calls_{side}.pkl", args.reuse)
                 calls = link_to_truth(sim_dir, side, rec)
-                found = {name: errors(calls, fn, args.draws) for name, fn in fits.items()}
-                for name, (e, none) in found.items():
+                found = {name: errors(calls, fn, args.draws, terrain if name == DEFAULT_METHOD else None)
+                         for name, fn in fits.items()}
+                for name, (e, none, _) in found.items():
                     e_all, none_all = pooled.get((sc, name), (np.zeros((0, 2)), 0))
                     pooled[(sc, name)] = (np.vstack([e_all, e]), none_all + none)
                 rows.append({"scenario": sc, "seed": seed, "side": side, "trees_with_seen_ground": len(calls),
-                             "methods": {name: summary(*found[name]) for name in fits}})
+                             "methods": {name: summary(*found[name][:2]) for name in fits}})
                 n_calls[sc] = n_calls.get(sc, 0) + len(calls)
-                own, vs_truth = own_cells_errors(calls, terrain, args.draws)
-                split_rows.append({"scenario": sc, "seed": seed, "side": side, "own cells": own,
-                                   "cells vs truth": vs_truth})
+                split_rows.append({"scenario": sc, "seed": seed, "side": side, **found[DEFAULT_METHOD][2]})
         # Every seed and side of the scenario pooled.
         rows.append({"scenario": sc, "seed": "all", "side": "both", "trees_with_seen_ground": n_calls.get(sc, 0),
                      "methods": {name: summary(*pooled[(sc, name)]) for name in fits if (sc, name) in pooled}})
@@ -238,18 +233,10 @@ def main(argv: list[str] | None = None) -> int:
                                                              if r["scenario"] == sc])} for sc in args.scenarios)]:
         cells, entry = [], {"scenario": key["scenario"], "seed": key["seed"], "side": key["side"]}
         for name in ("own cells", "cells vs truth"):
-            e = key[name]
-            deg, mm = e[:, 0], np.abs(e[:, 1])
-            stats = {"goal": int(np.sum((deg <= GOAL_DEG) & (mm <= GOAL_MM))),
-                     "within_2": int(np.sum((deg <= 2.0) & (mm <= 20.0))),
-                     "median_deg": float(np.median(deg)) if len(e) else None,
-                     "max_deg": float(deg.max()) if len(e) else None,
-                     "median_abs_height_mm": float(np.median(mm)) if len(e) else None,
-                     "max_abs_height_mm": float(mm.max()) if len(e) else None}
-            entry[name] = stats
-            cells.append("-" if not len(e) else f"{stats['goal']} | {stats['within_2']}, {stats['median_deg']:.2f}/"
-                         f"{stats['max_deg']:.1f} deg, {stats['median_abs_height_mm']:.1f}/"
-                         f"{stats['max_abs_height_mm']:.1f} mm")
+            stats = entry[name] = summary(key[name], 0)
+            cells.append("-" if stats["median_deg"] is None else
+                         f"{stats['goal']} | {stats['within_2']}, {stats['median_deg']:.2f}/{stats['max_deg']:.1f} "
+                         f"deg, {stats['median_abs_height_mm']:.1f}/{stats['max_abs_height_mm']:.1f} mm")
         split_json.append(entry)
         split.add_row(f"{key['scenario']} {key['seed']} {key['side']}", str(len(key["own cells"])), *cells)
     console.print(split)
