@@ -265,10 +265,11 @@ def main(argv: list[str] | None = None) -> int:
                          "'depth3:semantic_ba.trunk_sigma_depth_m=0.003' or 'no_anchor:semantic_ba.height_sigma_m=0'")
     ap.add_argument("--methods", nargs="+", default=list(METHODS), help="merge methods for the rows themselves")
     args = ap.parse_args(argv)
+    methods = list(args.methods)
     for spec in args.variant:
         label, _, sets = spec.partition(":")
         VARIANTS[label] = unflatten({"merge.method": "semantic_ba", **parse_sets(list(filter(None, sets.split(","))))})
-    methods = [*args.methods, *(spec.partition(":")[0] for spec in args.variant)]
+        methods.append(label)
     rows = []
     for sc in args.scenarios:
         gt, sides = case_sides(sc, args)

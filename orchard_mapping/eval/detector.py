@@ -27,17 +27,16 @@ class DetectorScores:
     ap_trunk: float  # per class, IoU 0.50:0.95 (-1: no instance of that class)
     ap_post: float
     ms_per_image: float  # median onnxruntime + post-processing time
-    ap50_trunk: float = -1.0  # per class at IoU 0.50
-    ap50_post: float = -1.0
+    ap50_trunk: float  # per class at IoU 0.50
+    ap50_post: float
     # COCO's sizes (mask area < 32^2, 32^2-96^2, > 96^2 px), IoU 0.50:0.95, both classes (-1: none of that size).
     # A trunk behind leaves or weeds is a sliver: where a model loses AP shows here.
-    ap_small: float = -1.0
-    ap_medium: float = -1.0
-    ap_large: float = -1.0
+    ap_small: float
+    ap_medium: float
+    ap_large: float
     # AP50 with the class ignored: a trunk found but called a post counts. Against ap50: what the
     # confusion of the two classes costs.
-    ap50_any_class: float = -1.0
-
+    ap50_any_class: float
 
 def evaluate_detector(model: str | Path, data: list[Path], threads: int = 2) -> DetectorScores:
     from pycocotools import mask as mask_util

@@ -230,7 +230,7 @@ class SensorModel:
     flying_pixels: float
     color_noise_sd: float
     exposure_jitter: float
-    depth_noise_correlation_px: float = 0.0  # sd (px) of the Gaussian the depth noise is correlated over; 0: white
+    depth_noise_correlation_px: float  # sd (px) of the Gaussian the depth noise is correlated over; 0: white
 
     @classmethod
     def from_camera(cls, c: CameraSpec) -> "SensorModel":
