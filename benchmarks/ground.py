@@ -26,6 +26,9 @@ exact terrain over the fit's own ground cells (what the fit got wrong about the 
 truth": that terrain plane against the truth (the two disagree on which ground was seen; no fit does better
 than this on such a tree).
 
+Last, where the default fit gave no plane, how much of the disk the truth counts as seen (most such sides saw
+less ground than the fit's minimum support; the truth's plane needs only 50 cells of 2 cm, 2.5 % of the disk).
+
     python benchmarks/ground.py [--scenarios slope_weeds] [--seeds 0 1] [--trees 10] [--rate 15]
         [--draws 3] [--workdir /tmp/ground_bench] [--reuse] [--json out.json]
 """
@@ -92,6 +95,7 @@ def record_side(sim_dir: Path, side: str, cache: Path, reuse: bool) -> dict[str,
 def link_to_truth(sim_dir: Path, side: str, rec: dict[str, Any]) -> list[dict[str, Any]]:
     """Each recorded call with its true tree's seen ground (world) and the world <- odom alignment."""
     gt = load_ground_truth(sim_dir / "ground_truth.json")
+    raw = {t["id"]: t for t in json.loads((sim_dir / "ground_truth.json").read_text())["trees"]}
     ts = gt.sides[side]
     poses = rec["poses"]
     est = StampedTrajectory(rec["stamps"], poses[:, :3, 3], np.array([matrix_to_quat(P[:3, :3]) for P in poses]))
@@ -104,7 +108,8 @@ def link_to_truth(sim_dir: Path, side: str, rec: dict[str, Any]) -> list[dict[st
         tree = gt.trees[int(np.argmin(np.linalg.norm(xy - foot[:2], axis=1)))]
         seen = tree.seen_ground.get(side)
         if seen is not None:
-            out.append({**c, "T": T, "tree": tree.id, "seen": seen})
+            fraction = float(raw[tree.id]["observed"][side]["local_ground"]["seen_fraction"])
+            out.append({**c, "T": T, "tree": tree.id, "seen": seen, "seen_fraction": fraction})
     return out
 
 
@@ -128,18 +133,20 @@ def methods() -> dict[str, Callable[[dict[str, Any], int], Any]]:
 
 
 def errors(calls: list[dict[str, Any]], fit_fn: Callable[[dict[str, Any], int], Any], draws: int,
-           terrain: Any = None) -> tuple[np.ndarray, int, dict[str, np.ndarray] | None]:
-    """((F, 2) normal error deg and signed height error mm of every fit, fits that gave no plane, the split):
+           terrain: Any = None) -> tuple[np.ndarray, int, dict[str, np.ndarray] | None, list[float]]:
+    """((F, 2) normal error deg and signed height error mm of every fit, fits that gave no plane, the split,
+    the share of the disk the side saw (the truth's seen_fraction) for each fit that gave no plane):
     with the scene's `terrain`, the same fits' error split in two (module docstring), {"own cells": (F, 2)
     the fit against the exact terrain plane over its own ground cells, "cells vs truth": (F, 2) that plane
     against the truth (the plane of the terrain over the cells the simulator counts as seen)}; else None."""
-    errs, none = [], 0
+    errs, none, none_seen = [], 0, []
     split: dict[str, list] = {"own cells": [], "cells vs truth": []}
     for c in calls:
         for s in range(draws):
             fit = fit_fn(c, s)
             if fit is None:
                 none += 1
+                none_seen.append(c["seen_fraction"])
                 continue
             T, (p_t, n_t) = c["T"], c["seen"]
             n_w, p_w = T[:3, :3] @ fit.normal, T[:3, :3] @ fit.point + T[:3, 3]
@@ -150,7 +157,7 @@ def errors(calls: list[dict[str, Any]], fit_fn: Callable[[dict[str, Any], int], 
                 split["own cells"].append(_plane_errors(n_w, p_w, p_c, n_c))
                 split["cells vs truth"].append(_plane_errors(n_c, p_c, p_t, n_t))
     out = {k: np.array(v).reshape(-1, 2) for k, v in split.items()} if terrain is not None else None
-    return np.array(errs).reshape(-1, 2), none, out
+    return np.array(errs).reshape(-1, 2), none, out, none_seen
 
 
 def summary(e: np.ndarray, none: int) -> dict[str, Any]:
@@ -182,6 +189,7 @@ def main(argv: list[str] | None = None) -> int:
     split_rows = []  # the default fit's error split (errors with the terrain)
     pooled: dict[tuple[str, str], tuple[np.ndarray, int]] = {}
     n_calls: dict[str, int] = {}
+    none_seen: dict[str, list[float]] = {}  # the truth's seen share of the disk where the default fit gave none
     for sc in args.scenarios:
         for seed in args.seeds:
             case_dir = args.workdir / f"{sc}_{args.trees}trees_{args.rate:g}hz_seed{seed}"
@@ -194,12 +202,13 @@ def main(argv: list[str] | None = None) -> int:
                 calls = link_to_truth(sim_dir, side, rec)
                 found = {name: errors(calls, fn, args.draws, terrain if name == DEFAULT_METHOD else None)
                          for name, fn in fits.items()}
-                for name, (e, none, _) in found.items():
+                for name, (e, none, *_) in found.items():
                     e_all, none_all = pooled.get((sc, name), (np.zeros((0, 2)), 0))
                     pooled[(sc, name)] = (np.vstack([e_all, e]), none_all + none)
                 rows.append({"scenario": sc, "seed": seed, "side": side, "trees_with_seen_ground": len(calls),
                              "methods": {name: summary(*found[name][:2]) for name in fits}})
                 n_calls[sc] = n_calls.get(sc, 0) + len(calls)
+                none_seen.setdefault(sc, []).extend(found[DEFAULT_METHOD][3])
                 split_rows.append({"scenario": sc, "seed": seed, "side": side, **found[DEFAULT_METHOD][2]})
         # Every seed and side of the scenario pooled.
         rows.append({"scenario": sc, "seed": "all", "side": "both", "trees_with_seen_ground": n_calls.get(sc, 0),
@@ -240,8 +249,24 @@ def main(argv: list[str] | None = None) -> int:
         split_json.append(entry)
         split.add_row(f"{key['scenario']} {key['seed']} {key['side']}", str(len(key["own cells"])), *cells)
     console.print(split)
+    # A side that saw little of a tree's ground gets no plane (less than min_support_m2 of ground cells): how
+    # much of the 0.5 m disk the simulator counts as seen there (its plane needs only GROUND_MIN_CELLS cells).
+    disk = np.pi * GroundParams().radius_m ** 2
+    support = load_config().ground.min_support_m2 / disk
+    none_json = {}
+    for sc, seen in none_seen.items():
+        seen_arr = np.array(seen)
+        none_json[sc] = {"none": len(seen), "seen_below_min_support": int(np.sum(seen_arr < support)),
+                         "min_support_fraction": support, "seen_fractions": sorted(round(x, 4) for x in seen)}
+        if not len(seen):
+            console.print(f"{sc}: a plane on every fit")
+            continue
+        console.print(f"{sc}: no plane on {len(seen)} fits; there the side saw {seen_arr.min():.1%}-{seen_arr.max():.1%}"
+                      f" of the disk (truth), less than the fit's minimum support ({support:.1%}, "
+                      f"{load_config().ground.min_support_m2} m^2) on {none_json[sc]['seen_below_min_support']}")
     if args.json:
-        args.json.write_text(json.dumps({"methods": rows, "ground_surface_split": split_json}, indent=1))
+        args.json.write_text(json.dumps({"methods": rows, "ground_surface_split": split_json, "no_plane": none_json},
+                                        indent=1))
         console.print(f"wrote {args.json}")
     return 0
 

@@ -157,8 +157,8 @@ class RGBFrontEnd(RGBDFrontEnd):
         self._reentry_kf: int | None = None  # keyframe made at the last relocalisation, until its re-entry BA
         # Lost frames that had texture but were not relocalised, (slot in self.poses, image), and the frames
         # tracked since the relocalisation that followed them: placed by tracking back at the re-entry.
-        self._unplaced: list[tuple[int, np.ndarray]] = []
-        self._since_reloc: list[tuple[int, np.ndarray]] = []
+        self._unplaced: list[tuple[int, np.ndarray, int]] = []  # (slot, image, frame index)
+        self._since_reloc: list[tuple[int, np.ndarray, int]] = []
         # Upright BRIEF (angle 0) at given corners: descriptors of landmarks and of a lost frame's corners.
         self._orb = cv2.ORB_create(edgeThreshold=ORB_PATCH_PX // 2 + 1, patchSize=ORB_PATCH_PX)
 
@@ -402,7 +402,7 @@ class RGBFrontEnd(RGBDFrontEnd):
         self._track_pending(gray)  # first: a keyframe made while tracking the landmarks triangulates them
         pose = super()._track_klt(gray, frame)
         if pose is not None and self._unplaced:
-            self._since_reloc.append((len(self.poses), gray))
+            self._since_reloc.append((len(self.poses), gray, frame.index))
             del self._since_reloc[:-self.m.backtrack_max_frames]
         return None if pose is None else self._pose  # a re-entry bundle adjustment may have moved it
 
@@ -428,7 +428,7 @@ class RGBFrontEnd(RGBDFrontEnd):
         if self._reentry_kf is not None and kf - self._reentry_kf >= self.m.reentry_ba_keyframes:
             self._reentry_bundle_adjustment()
             if self._unplaced:
-                self._place_by_tracking_back(gray, len(self.poses))
+                self._place_by_tracking_back(gray, len(self.poses), frame.index)
         return True
 
     def _lose_tracks(self) -> None:
@@ -525,7 +525,7 @@ class RGBFrontEnd(RGBDFrontEnd):
         placed = self._relocalise_against_map(gray, corners.reshape(-1, 2))
         if placed is None:
             self.events.append(f"frame {frame.index}: tracking lost, relocalisation failed")
-            self._unplaced.append((len(self.poses), gray))
+            self._unplaced.append((len(self.poses), gray, frame.index))
             del self._unplaced[:-self.m.backtrack_max_frames]
             return None
         pose, pts, ids = placed
@@ -534,23 +534,24 @@ class RGBFrontEnd(RGBDFrontEnd):
         self.events.append(f"frame {frame.index}: tracking recovered: relocalised against the map "
                            f"({len(ids)} landmarks; last tracked frame {steps} frames back)")
         if self._unplaced:
-            self._since_reloc = [(len(self.poses), gray)]
+            self._since_reloc = [(len(self.poses), gray, frame.index)]
         self._make_keyframe(gray, frame, pose)
         self._reentry_kf = len(self.keyframes) - 1
         return pose
 
-    def _place_by_tracking_back(self, gray: np.ndarray, slot: int) -> None:
-        """Place the lost frames kept before the last relocalisation by tracking back from frame `slot`
-        (image `gray`, the live tracks and pose) through the frames since: KLT from each frame into the one
-        before it, then PnP, until one fails. Their poses replace the NaN ones in self.poses."""
-        chain = [f for f in self._since_reloc if f[0] < slot] + self._unplaced  # (slot, image), newest first
+    def _place_by_tracking_back(self, gray: np.ndarray, slot: int, index: int) -> None:
+        """Place the lost frames kept before the last relocalisation by tracking back from the frame at
+        `slot` of self.poses (image `gray`, frame `index`; the live tracks and pose) through the frames since:
+        KLT from each frame into the one before it, then PnP, until one fails. Their poses replace the NaN
+        ones in self.poses."""
+        chain = [f for f in self._since_reloc if f[0] < slot] + self._unplaced  # newest first after the sort
         chain.sort(key=lambda f: -f[0])
         self._unplaced, self._since_reloc = [], []
         if not chain or [f[0] for f in chain] != list(range(slot - 1, slot - 1 - len(chain), -1)):
             return  # not one unbroken run of frames up to `slot` (more were lost than were kept)
         pts, ids, pose, placed = self._pts, self._ids, self._pose, []
         lm, des, X = self._recent_landmark_descriptors()
-        for older_slot, older in chain:
+        for older_slot, older, older_index in chain:
             tracked = self._klt(older, pts, None, prev=gray)
             best = None
             if tracked is not None:
@@ -573,11 +574,11 @@ class RGBFrontEnd(RGBDFrontEnd):
             pose, pts, ids = best
             if not np.isfinite(self.poses[older_slot]).all():
                 self.poses[older_slot] = pose
-                placed.append(older_slot)
+                placed.append(older_index)
             gray = older
         if placed:
-            self.events.append(f"{len(placed)} lost frames (slots {min(placed)}-{max(placed)}) placed by tracking "
-                               f"back from slot {slot}")
+            self.events.append(f"frame {index}: {len(placed)} lost frames ({min(placed)}-{max(placed)}) placed by "
+                               f"tracking back from it")
 
     def _predicted_pose(self) -> np.ndarray | None:
         """The last tracked pose extrapolated with the last motion to the current frame."""
@@ -694,8 +695,8 @@ class RGBFrontEnd(RGBDFrontEnd):
 
     def result(self) -> FrontEndResult:
         if self._unplaced and self._since_reloc and self._lost_streak == 0:  # ended before the re-entry
-            slot, gray = self._since_reloc[-1]
-            self._place_by_tracking_back(gray, slot)
+            slot, gray, index = self._since_reloc[-1]
+            self._place_by_tracking_back(gray, slot, index)
         if not self.keyframes:
             self.events.append("colour-only initialisation never succeeded (too little texture or parallax)")
         return super().result()

@@ -210,7 +210,7 @@ def test_frames_relocalisation_missed_are_placed_by_tracking_back(row, accuracy,
     res, _ = _run(frames, row.intr)
     placed = np.isfinite(res.frame_poses[:, 0, 0])
     assert not placed[BLANK.start:BLANK.stop].any() and placed[BLANK.stop:].all(), (np.flatnonzero(~placed), res.events[-6:])
-    back = [re.search(r"lost frames \(slots (\d+)-(\d+)\) placed by tracking back", e) for e in res.events]
+    back = [re.search(r"lost frames \((\d+)-(\d+)\) placed by tracking back", e) for e in res.events]
     back = [range(int(m[1]), int(m[2]) + 1) for m in back if m]
     assert len(back) == 1 and set(missed) <= set(back[0]), res.events[-4:]
     s, R, t = _similarity_from_poses(res.frame_poses[placed], row.truth[placed])
