@@ -26,7 +26,7 @@ from orchard_mapping.config import OrchardConfig, dump_yaml
 from orchard_mapping.core.alignment import AlignmentSide, SideAlignment, align_sides, icp_merge, pair_trunks
 from orchard_mapping.core.bundle_adjustment import BAResult, bundle_adjust_windowed, optimise_pose_graph
 from orchard_mapping.core.cylinder import CylinderError, fit_cylinders_shared_radius
-from orchard_mapping.core.fusion import FusionResult, fuse_side
+from orchard_mapping.core.fusion import FusionResult, Region, fuse_side
 from orchard_mapping.core.merge import HeightPrior, InitialTransform, SemanticPair, initial_transform
 from orchard_mapping.core.geometry import SlabIndex, matrix_to_quat, move_with_keyframes
 from orchard_mapping.core.odometry import RGBDFrontEnd
@@ -446,13 +446,13 @@ class TrunkViews:
         self.seconds = 0.0  # s spent in the detector and cropping
         self.post_seconds = 0.0  # s spent fitting posts
         self._last: np.ndarray | None = None
-        self._detections: dict[int, tuple[list, tuple[int, int, int, int]]] = {}  # keyframe -> its trunk
-        # detections and the part of the frame around them (r0, c0, r1, c1) px, until it is cleaned
+        # keyframe -> its trunk detections and the part of the frame around them, until it is cleaned
+        self._detections: dict[int, tuple[list, Region]] = {}
         self.posts: list[PostObservation] = []  # each post detection's own fit (core/posts.py), raw depth
         self._up = -poses[0][:3, 1] if len(poses) else np.array([0.0, -1.0, 0.0])  # odom: the first camera's up
         self._rng = np.random.default_rng(cfg.seed)
 
-    def select(self, k: int, color: np.ndarray, depth: np.ndarray | None = None) -> bool | tuple[int, int, int, int]:
+    def select(self, k: int, color: np.ndarray, depth: np.ndarray | None = None) -> bool | Region:
         """Detect on keyframe k if it is trunks.detect_every_m on from the last: the part of it fusion is to clean
         (the rows and columns around its trunk detections, as `__call__` crops them), or False."""
         if self.detect is None:

@@ -640,19 +640,17 @@ def fuse_side(frames: Iterable[tuple[np.ndarray, np.ndarray, np.ndarray]], intr:
     frames_done += side.frames_integrated
     if mode == "local":
         centres = np.array([T[:3, 3] for T in poses]) if poses else np.zeros((0, 3))
-        local_seconds = [0.0, 0]
 
         def local_fused(k: int, T: np.ndarray) -> np.ndarray:
+            nonlocal seconds, frames_done
             local = new_grid()
             for j in _nearest_frames(centres, k, neighbours):
                 local.integrate(*kept[j])
-            local_seconds[0] += local.seconds_integrating
-            local_seconds[1] += local.frames_integrated
+            seconds += local.seconds_integrating
+            frames_done += local.frames_integrated
             return local.raycast_depth(T)
 
         for k, raw, color, T, region in pending:
             clean(k, raw, color, T, region)
-        seconds += local_seconds[0]
-        frames_done += local_seconds[1]
     return FusionResult(points, colors, cleaned, seconds / max(1, frames_done), time.perf_counter() - t_start, mode,
                         color_key, peak_blocks=peak[0], blocks_retired=side.blocks_retired)

@@ -516,13 +516,12 @@ class RGBFrontEnd(RGBDFrontEnd):
             self._unplaced, self._since_reloc = [], []
         self.lost_frames += 1
         self._lose_tracks()
-        corners = cv2.goodFeaturesToTrack(gray, 2 * self.p.max_corners, self.p.corner_quality,
-                                          max(2, self.p.corner_min_distance_px // 2))
-        if corners is None or len(corners) < self.p.min_inliers:
+        corners = self._lost_frame_corners(gray)
+        if len(corners) < self.p.min_inliers:
             self.events.append(f"frame {frame.index}: tracking lost (no texture)")
             self._unplaced = []
             return None
-        placed = self._relocalise_against_map(gray, corners.reshape(-1, 2))
+        placed = self._relocalise_against_map(gray, corners)
         if placed is None:
             self.events.append(f"frame {frame.index}: tracking lost, relocalisation failed")
             self._unplaced.append((len(self.poses), gray, frame.index))
@@ -538,6 +537,12 @@ class RGBFrontEnd(RGBDFrontEnd):
         self._make_keyframe(gray, frame, pose)
         self._reentry_kf = len(self.keyframes) - 1
         return pose
+
+    def _lost_frame_corners(self, gray: np.ndarray) -> np.ndarray:
+        """Corners (C, 2) float32 of a frame to place without tracks: twice the tracker's count, half its spacing."""
+        corners = cv2.goodFeaturesToTrack(gray, 2 * self.p.max_corners, self.p.corner_quality,
+                                          max(2, self.p.corner_min_distance_px // 2))
+        return np.zeros((0, 2), np.float32) if corners is None else corners.reshape(-1, 2)
 
     def _place_by_tracking_back(self, gray: np.ndarray, slot: int, index: int) -> None:
         """Place the lost frames kept before the last relocalisation by tracking back from the frame at
@@ -562,10 +567,9 @@ class RGBFrontEnd(RGBDFrontEnd):
             if best is None or len(best[2]) < 2 * self.p.min_inliers:
                 # Tracks thin out going back (occlusions at the leaves' edges): top them up from the recent
                 # landmarks' descriptors and the last good frame's tracks, as relocalisation does.
-                corners = cv2.goodFeaturesToTrack(older, 2 * self.p.max_corners, self.p.corner_quality,
-                                                  max(2, self.p.corner_min_distance_px // 2))
-                if corners is not None and len(lm):
-                    uv, fdes, _ = self._corner_descriptors(older, corners.reshape(-1, 2), np.arange(len(corners)))
+                corners = self._lost_frame_corners(older)
+                if len(corners) and len(lm):
+                    uv, fdes, _ = self._corner_descriptors(older, corners, np.arange(len(corners)))
                     grown = self._grow_matches(older, best[0] if best else pose, lm, des, X, fdes, uv)
                     if grown is not None and (best is None or len(grown[2]) > len(best[2])):
                         best = grown

@@ -64,6 +64,12 @@ class Row:
         return self.surfaces.compute_distance(o3c.Tensor(pw.astype(np.float32))).numpy()
 
 
+def _with_blank_frames(row: Row) -> list[RGBDFrame]:
+    """The row's frames with those in BLANK replaced by a flat grey image (a covered lens, a dropout)."""
+    return [RGBDFrame(f.stamp, np.full_like(f.color, 90), None, f.intrinsics, f.side, f.index) if f.index in BLANK
+            else f for f in row.frames]
+
+
 def _run(frames: list[RGBDFrame], intr: CameraIntrinsics) -> tuple[FrontEndResult, float]:
     fe = RGBFrontEnd(intr, PARAMS)
     t0 = time.perf_counter()
@@ -180,8 +186,7 @@ def test_landmarks_lie_on_the_true_surfaces(row, accuracy):
 
 @pytest.mark.accuracy
 def test_blank_frames_are_reported_and_tracking_recovers(row, accuracy):
-    frames = [RGBDFrame(f.stamp, np.full_like(f.color, 90), None, f.intrinsics, f.side, f.index) if f.index in BLANK
-              else f for f in row.frames]
+    frames = _with_blank_frames(row)
     res, _ = _run(frames, row.intr)
     placed = np.isfinite(res.frame_poses[:, 0, 0])
     assert not placed[BLANK.start:BLANK.stop].any()
@@ -205,8 +210,7 @@ def test_frames_relocalisation_missed_are_placed_by_tracking_back(row, accuracy,
         return None if len(self.poses) in missed else real(self, gray, corners)
 
     monkeypatch.setattr(RGBFrontEnd, "_relocalise_against_map", refusing)
-    frames = [RGBDFrame(f.stamp, np.full_like(f.color, 90), None, f.intrinsics, f.side, f.index) if f.index in BLANK
-              else f for f in row.frames]
+    frames = _with_blank_frames(row)
     res, _ = _run(frames, row.intr)
     placed = np.isfinite(res.frame_poses[:, 0, 0])
     assert not placed[BLANK.start:BLANK.stop].any() and placed[BLANK.stop:].all(), (np.flatnonzero(~placed), res.events[-6:])
