@@ -34,6 +34,7 @@ from dataclasses import dataclass
 import numpy as np
 from scipy.optimize import least_squares
 
+from orchard_mapping.core.geometry import group_medians
 from orchard_mapping.core.odometry import backproject
 from orchard_mapping.core.types import CameraIntrinsics, ImagePatch
 from orchard_mapping.errors import OrchardMappingError
@@ -104,6 +105,31 @@ def point_distance(points: np.ndarray, cyl: Cylinder) -> np.ndarray:
     return np.linalg.norm(radial, axis=1) - cyl.radius
 
 
+def _radial_terms(points: np.ndarray, axis: np.ndarray, origin: np.ndarray
+                  ) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+    """rel (N, 3) points from the origin, h (N,) m along the axis, u (N, 3) unit radial directions, d (N,)
+    radial distances of points (N, 3) from the axis line."""
+    rel = points - origin
+    h = rel @ axis
+    q = rel - h[:, None] * axis
+    d = np.maximum(np.linalg.norm(q, axis=1), 1e-12)
+    return rel, h, q / d[:, None], d
+
+
+def _tilt_shift_jacobian(rel: np.ndarray, h: np.ndarray, u: np.ndarray, axis: np.ndarray, axis_length: float,
+                         e1: np.ndarray, e2: np.ndarray, taper: float = 0.0) -> np.ndarray:
+    """(N, 4) derivatives of each point's radial distance minus taper * h (a cone's radius change along the
+    axis; 0 for a cylinder) with respect to (the axis tilted along e1, e2 before it is normalised from
+    axis_length; the origin moved along e1, e2). Analytic, since u is across the axis: d|q| = u . dq; by
+    finite differences the fits spent most of their time here (a residual evaluation per parameter)."""
+    J = np.empty((len(rel), 4))
+    for i, e in enumerate((e1, e2)):
+        g = (e - (axis @ e) * axis) / axis_length  # d axis / d tilt
+        J[:, i] = -h * (u @ g) - taper * (rel @ g)
+        J[:, 2 + i] = -(u @ e) + taper * (axis @ e)
+    return J
+
+
 def _orient(axis: np.ndarray, up: np.ndarray | None) -> np.ndarray:
     axis = axis / np.linalg.norm(axis)
     return -axis if up is not None and axis @ up < 0 else axis
@@ -111,21 +137,33 @@ def _orient(axis: np.ndarray, up: np.ndarray | None) -> np.ndarray:
 
 def cylinder_from_oriented_points(p: np.ndarray, n: np.ndarray, up: np.ndarray | None = None) -> Cylinder | None:
     """The cylinder through two points p (2, 3) with surface normals n (2, 3); None if degenerate."""
-    axis = np.cross(n[0], n[1])
-    s = float(np.linalg.norm(axis))
-    if s < 0.05:  # normals nearly parallel: the axis is undetermined
-        return None
-    axis = _orient(axis / s, up)
-    # In the plane across the axis, the centre lies on both normal lines p_i + t_i n_i.
-    q = p - np.outer(p @ axis, axis)  # (2, 3) projected points
-    m = n - np.outer(n @ axis, axis)
-    m /= np.linalg.norm(m, axis=1, keepdims=True)
-    A = np.stack([m[0], -m[1]], axis=1)  # (3, 2)
-    t, *_ = np.linalg.lstsq(A, q[1] - q[0], rcond=None)
-    c0, c1 = q[0] + t[0] * m[0], q[1] + t[1] * m[1]
-    centre = 0.5 * (c0 + c1)
-    r = 0.5 * (np.linalg.norm(q[0] - centre) + np.linalg.norm(q[1] - centre))
-    return Cylinder(axis, centre, float(r))
+    axes, centres, radii, ok = _cylinders_from_oriented_pairs(p[None], n[None], up)
+    return Cylinder(axes[0], centres[0], float(radii[0])) if ok[0] else None
+
+
+def _cylinders_from_oriented_pairs(p: np.ndarray, n: np.ndarray, up: np.ndarray | None
+                                   ) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+    """The cylinders through S pairs of points p (S, 2, 3) with surface normals n (S, 2, 3), at once:
+    axes (S, 3) unit (towards up), centres (S, 3) on the axes, radii (S,), ok (S,) False where degenerate."""
+    axis = np.cross(n[:, 0], n[:, 1])  # (S, 3)
+    s = np.linalg.norm(axis, axis=1)
+    ok = s >= 0.05  # normals nearly parallel: the axis is undetermined
+    axis = axis / np.where(ok, s, 1.0)[:, None]
+    if up is not None:
+        axis *= np.where(axis @ up < 0, -1.0, 1.0)[:, None]
+    # In the plane across the axis, the centre lies on both normal lines p_i + t_i m_i: least squares in
+    # (t_0, t_1) of m_0 t_0 - m_1 t_1 = q_1 - q_0, by its 2 x 2 normal equations.
+    q = p - np.einsum("sk,sj->skj", np.einsum("skj,sj->sk", p, axis), axis)  # (S, 2, 3) projected points
+    m = n - np.einsum("sk,sj->skj", np.einsum("skj,sj->sk", n, axis), axis)
+    m /= np.maximum(np.linalg.norm(m, axis=2, keepdims=True), 1e-12)
+    c01 = np.einsum("sj,sj->s", m[:, 0], m[:, 1])  # m_i are unit: the normal matrix is [[1, -c], [-c, 1]]
+    b = q[:, 1] - q[:, 0]
+    b0, b1 = np.einsum("sj,sj->s", m[:, 0], b), -np.einsum("sj,sj->s", m[:, 1], b)
+    det = np.where(ok, 1.0 - c01**2, 1.0)
+    t0, t1 = (b0 + c01 * b1) / det, (c01 * b0 + b1) / det
+    centre = 0.5 * (q[:, 0] + t0[:, None] * m[:, 0] + q[:, 1] + t1[:, None] * m[:, 1])
+    r = 0.5 * (np.linalg.norm(q[:, 0] - centre, axis=1) + np.linalg.norm(q[:, 1] - centre, axis=1))
+    return axis, centre, r, ok
 
 
 def ransac_cylinder(points: np.ndarray, normals: np.ndarray, rng: np.random.Generator, *, threshold_m: float,
@@ -140,19 +178,30 @@ def ransac_cylinder(points: np.ndarray, normals: np.ndarray, rng: np.random.Gene
         return None
     cos_axis = np.cos(np.radians(max_axis_angle_deg))
     cos_normal = np.cos(np.radians(normal_angle_deg))
-    best: tuple[int, Cylinder, np.ndarray] | None = None
     pairs = rng.integers(0, n_pts, size=(iterations, 2))
-    for i, j in pairs:
-        if i == j:
-            continue
-        cyl = cylinder_from_oriented_points(points[[i, j]], normals[[i, j]], up)
-        if cyl is None or cyl.axis @ up < cos_axis or not radius_range_m[0] <= cyl.radius <= radius_range_m[1]:
-            continue
-        inl = _inliers(points, normals, cyl, threshold_m, cos_normal)
-        score = int(inl.sum())
-        if best is None or score > best[0]:
-            best = (score, cyl, inl)
-    return None if best is None else (best[1], best[2])
+    # every sample's cylinder at once (one at a time this was a third of the fit's time); scored in order
+    axes, centres, radii, ok = _cylinders_from_oriented_pairs(points[pairs], normals[pairs], up)
+    ok &= (pairs[:, 0] != pairs[:, 1]) & (axes @ up >= cos_axis) & (radii >= radius_range_m[0]) \
+        & (radii <= radius_range_m[1])
+    cand = np.flatnonzero(ok)
+    if len(cand) == 0:
+        return None
+    scores = np.zeros(len(cand), int)
+    step = max(1, _SCORE_BLOCK // n_pts)  # candidates scored together: (step, N) arrays
+    for s in range(0, len(cand), step):
+        c = cand[s:s + step]
+        rel = points[None] - centres[c][:, None]  # (C, N, 3)
+        radial = rel - np.einsum("cnj,cj->cn", rel, axes[c])[..., None] * axes[c][:, None]
+        dist = np.linalg.norm(radial, axis=2)  # (C, N)
+        outward = np.abs(np.einsum("cnj,nj->cn", radial, normals)) / np.maximum(dist, 1e-9)
+        scores[s:s + step] = np.sum((np.abs(dist - radii[c][:, None]) < threshold_m) & (outward >= cos_normal), 1)
+    i = cand[int(np.argmax(scores))]  # the first sample with the most inliers
+    cyl = Cylinder(axes[i], centres[i], float(radii[i]))
+    return cyl, _inliers(points, normals, cyl, threshold_m, cos_normal)
+
+
+# point-candidate pairs scored in one block by RANSAC: ~20 MB of float64 temporaries
+_SCORE_BLOCK = 250_000
 
 
 def _inliers(points: np.ndarray, normals: np.ndarray, cyl: Cylinder, threshold_m: float,
@@ -192,11 +241,6 @@ def _prepare_view(view: CylinderView, intr: CameraIntrinsics, rng: np.random.Gen
     return _ViewData(T_cam_odom, backproject(uv, depth[v, u].astype(float), intr), uv, rays, edge_z)
 
 
-def _view_terms(cyl: Cylinder, d: _ViewData, intr: CameraIntrinsics) -> tuple[np.ndarray, np.ndarray]:
-    """The 2D terms (px) of one prepared view for a cylinder in odom: see `view_residuals`."""
-    return view_residuals(cyl.transformed(d.T_cam_odom), d.X, d.uv, d.rays, d.edge_depth, intr)
-
-
 def _snap_edge(row: np.ndarray, u_in: int, step: int, snap_px: int, z_core: float, jump_m: float,
                behind_m: float) -> int:
     """The last trunk pixel of a row at a mask edge, moved to the depth discontinuity within snap_px.
@@ -220,6 +264,16 @@ def _snap_edge(row: np.ndarray, u_in: int, step: int, snap_px: int, z_core: floa
     return u
 
 
+def _row_medians(values: np.ndarray, mask: np.ndarray, rows: np.ndarray) -> np.ndarray:
+    """(R,) the median of values (H, W) over mask (H, W) bool in each of `rows` (R,), NaN where a row has none."""
+    v, u = np.nonzero(mask[rows])  # v: index into rows
+    out = np.full(len(rows), np.nan)
+    if len(v):
+        r, med = group_medians(v, values[rows[v], u])
+        out[r] = med
+    return out
+
+
 def _silhouette_rays(mask: np.ndarray, depth: np.ndarray, intr: CameraIntrinsics, *, look_px: int = 8,
                      occluder_margin_m: float = 0.05, snap_px: int = 0, jump_m: float = 0.03,
                      behind_m: float = 0.20) -> tuple[np.ndarray, np.ndarray]:
@@ -231,25 +285,23 @@ def _silhouette_rays(mask: np.ndarray, depth: np.ndarray, intr: CameraIntrinsics
     """
     H, W = mask.shape
     rows = np.flatnonzero(mask.any(axis=1))
+    first = np.argmax(mask[rows], axis=1)  # (R,) each row's first and last mask column
+    last = W - 1 - np.argmax(mask[rows, ::-1], axis=1)
+    z_core = _row_medians(depth, mask & (depth > 0), rows) if snap_px else None  # (R,) NaN: no depth
     rays, zs = [], []
-    for v in rows:
-        cols = np.flatnonzero(mask[v])
-        if snap_px:
-            zc = depth[v, cols]
-            zc = zc[zc > 0]
-            if len(zc) == 0:
-                continue
-            z_core = float(np.median(zc))
-        for u_in, step in ((cols[0], -1), (cols[-1], 1)):
+    for i, v in enumerate(rows):
+        if snap_px and not np.isfinite(z_core[i]):
+            continue
+        for u_in, step in ((first[i], -1), (last[i], 1)):
             if snap_px:
-                u_in = _snap_edge(depth[v], int(u_in), step, snap_px, z_core, jump_m, behind_m)
+                u_in = _snap_edge(depth[v], int(u_in), step, snap_px, float(z_core[i]), jump_m, behind_m)
             if u_in + step < 0 or u_in + step >= W:
                 continue
             inside = depth[v, max(0, min(u_in, u_in - 3 * step)):max(u_in, u_in - 3 * step) + 1]
-            inside = inside[inside > 0]
+            inside = np.sort(inside[inside > 0])
             if len(inside) == 0:
                 continue
-            z_in = float(np.median(inside))
+            z_in = 0.5 * float(inside[(len(inside) - 1) // 2] + inside[len(inside) // 2])  # their median
             out = depth[v, u_in + step::step][:look_px] if step > 0 else depth[v, u_in - 1::-1][:look_px]
             out = out[out > 0]
             if len(out) and out[0] < z_in - occluder_margin_m:
@@ -270,21 +322,7 @@ def view_residuals(cyl_cam: Cylinder, X: np.ndarray, uv: np.ndarray, rays: np.nd
     cyl_cam: the cylinder in this camera's frame; X (M, 3) depth points with pixels uv (M, 2);
     rays (B, 3) unit rays through silhouette edges with the trunk depth edge_z (B,) beside them.
     """
-    a, O, r = cyl_cam.axis, cyl_cam.origin, cyl_cam.radius
-    rel = X - O
-    along = rel @ a
-    radial = rel - along[:, None] * a
-    dist = np.maximum(np.linalg.norm(radial, axis=1), 1e-9)
-    S = O + along[:, None] * a + (r / dist)[:, None] * radial  # (M, 3) surface points
-    z = np.maximum(S[:, 2], 1e-3)
-    proj = np.stack([intr.fx * S[:, 0] / z + intr.cx, intr.fy * S[:, 1] / z + intr.cy], axis=1)
-    res_px = uv - proj  # (M, 2)
-    # Edge rays: the ray through the camera centre should touch the cylinder: distance(ray, axis) = r.
-    c = np.cross(rays, a)  # (B, 3)
-    cn = np.maximum(np.linalg.norm(c, axis=1), 1e-9)
-    d_line = np.abs(c @ O) / cn  # (B,) distance between the ray line and the axis line
-    res_edge = (d_line - r) * intr.fx / np.maximum(edge_z, 1e-3)
-    return res_px, res_edge
+    return _StackedViews.of([_ViewData(np.eye(4), X, uv, rays, edge_z)], intr).residuals(cyl_cam, intr)
 
 
 # --------------------------------------------------------------------------- joint refinement
@@ -298,6 +336,53 @@ def perpendicular_basis(a: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     return e1, np.cross(a, e1)
 
 
+@dataclass(frozen=True)
+class _StackedViews:
+    """The 2D terms' data of several prepared views stacked in odom, so that one cylinder's terms over all
+    of them are a few array operations (view by view, the Python loop was most of the refinement's time)."""
+
+    X: np.ndarray  # (M, 3) m odom: the depth pixels' points
+    uv: np.ndarray  # (M, 2) px: their pixels
+    R_cam_odom: np.ndarray  # (M, 3, 3): each pixel's camera rotation
+    t_cam_odom: np.ndarray  # (M, 3) m
+    ray_origin: np.ndarray  # (B, 3) m odom: the camera centre of each silhouette-edge ray
+    ray_dir: np.ndarray  # (B, 3) unit odom
+    px_per_m: np.ndarray  # (B,) fx / the trunk depth beside the edge
+
+    @staticmethod
+    def of(data: list[_ViewData], intr: CameraIntrinsics) -> "_StackedViews":
+        T = [np.linalg.inv(d.T_cam_odom) for d in data]  # T_odom_cam per view
+        m = [len(d.X) for d in data]
+        b = [len(d.rays) for d in data]
+        X = [d.X @ Ti[:3, :3].T + Ti[:3, 3] for d, Ti in zip(data, T)]
+        return _StackedViews(
+            X=np.concatenate(X) if X else np.zeros((0, 3)),
+            uv=np.concatenate([d.uv for d in data]) if data else np.zeros((0, 2)),
+            R_cam_odom=np.repeat(np.array([d.T_cam_odom[:3, :3] for d in data]).reshape(-1, 3, 3), m, axis=0),
+            t_cam_odom=np.repeat(np.array([d.T_cam_odom[:3, 3] for d in data]).reshape(-1, 3), m, axis=0),
+            ray_origin=np.repeat(np.array([Ti[:3, 3] for Ti in T]).reshape(-1, 3), b, axis=0),
+            ray_dir=np.concatenate([d.rays @ Ti[:3, :3].T for d, Ti in zip(data, T)]) if data else np.zeros((0, 3)),
+            px_per_m=(intr.fx / np.maximum(np.concatenate([d.edge_depth for d in data]), 1e-3)) if data
+            else np.zeros(0))
+
+    def residuals(self, cyl: Cylinder, intr: CameraIntrinsics) -> tuple[np.ndarray, np.ndarray]:
+        """(M, 2) px depth-pixel terms and (B,) px edge terms of `cyl` (odom), as `view_residuals` gives them
+        view by view (distances and the projection do not depend on the frame they are computed in)."""
+        a, O, r = cyl.axis, cyl.origin, cyl.radius
+        rel = self.X - O
+        along = rel @ a
+        radial = rel - along[:, None] * a
+        dist = np.maximum(np.linalg.norm(radial, axis=1), 1e-9)
+        S = O + along[:, None] * a + (r / dist)[:, None] * radial  # (M, 3) odom surface points
+        S = np.einsum("mij,mj->mi", self.R_cam_odom, S) + self.t_cam_odom  # (M, 3) in each pixel's camera
+        z = np.maximum(S[:, 2], 1e-3)
+        res_px = self.uv - np.stack([intr.fx * S[:, 0] / z + intr.cx, intr.fy * S[:, 1] / z + intr.cy], axis=1)
+        c = np.cross(self.ray_dir, a)  # (B, 3)
+        cn = np.maximum(np.linalg.norm(c, axis=1), 1e-9)
+        d_line = np.abs(np.einsum("bj,bj->b", c, self.ray_origin - O)) / cn  # ray line to axis line
+        return res_px, (d_line - r) * self.px_per_m
+
+
 def _refine(parts: list[tuple[Cylinder, np.ndarray, list[_ViewData]]], intr: CameraIntrinsics, *,
             sigma_3d_m: float, w2: float, huber_k: float) -> list[Cylinder]:
     """LM with Huber loss on eq. objectCylinder over cylinders that share one radius: each part (its
@@ -306,6 +391,7 @@ def _refine(parts: list[tuple[Cylinder, np.ndarray, list[_ViewData]]], intr: Cam
     eq. objectCylinder)."""
     bases = [perpendicular_basis(c0.axis) for c0, _, _ in parts]
     r0 = float(np.mean([c0.radius for c0, _, _ in parts]))
+    stacked = [_StackedViews.of(data, intr) if data else None for _, _, data in parts]
 
     def unpack(x: np.ndarray) -> list[Cylinder]:
         out = []
@@ -317,15 +403,28 @@ def _refine(parts: list[tuple[Cylinder, np.ndarray, list[_ViewData]]], intr: Cam
 
     def residuals(x: np.ndarray) -> np.ndarray:
         res = []
-        for (_, P, data), cyl in zip(parts, unpack(x)):
+        for (_, P, _), views, cyl in zip(parts, stacked, unpack(x)):
             res.append(point_distance(P, cyl) / sigma_3d_m)
-            for d in data:
-                r_px, r_edge = _view_terms(cyl, d, intr)
+            if views is not None:
+                r_px, r_edge = views.residuals(cyl, intr)
                 res += [w2 * r_px.ravel(), w2 * r_edge]
         return np.concatenate(res)
 
-    sol = least_squares(residuals, np.zeros(4 * len(parts) + 1), loss="huber", f_scale=huber_k, method="trf",
-                        x_scale=[0.05, 0.05, 0.01, 0.01] * len(parts) + [0.005], max_nfev=100)
+    def jacobian_3d(x: np.ndarray) -> np.ndarray:
+        J = np.zeros((sum(len(P) for _, P, _ in parts), len(x)))
+        row = 0
+        for i, ((c0, P, _), (e1, e2), cyl) in enumerate(zip(parts, bases, unpack(x))):
+            rel, h, u, _ = _radial_terms(P, cyl.axis, cyl.origin)
+            a_len = float(np.linalg.norm(c0.axis + x[4 * i] * e1 + x[4 * i + 1] * e2))
+            J[row:row + len(P), 4 * i:4 * i + 4] = _tilt_shift_jacobian(rel, h, u, cyl.axis, a_len, e1, e2)
+            J[row:row + len(P), -1] = -1.0
+            row += len(P)
+        return J / sigma_3d_m
+
+    # the 2D terms' derivatives by finite differences; the 3D term alone has them in closed form
+    jac = jacobian_3d if all(v is None for v in stacked) else "2-point"
+    sol = least_squares(residuals, np.zeros(4 * len(parts) + 1), jac=jac, loss="huber", f_scale=huber_k,
+                        method="trf", x_scale=[0.05, 0.05, 0.01, 0.01] * len(parts) + [0.005], max_nfev=100)
     return unpack(sol.x)
 
 
@@ -351,11 +450,16 @@ def refine_cone_axis(points: np.ndarray, cyl: Cylinder, *, threshold_m: float, s
 
     def residuals(x: np.ndarray) -> np.ndarray:
         a, o, r, k = unpack(x)
-        rel = P - o
-        h = rel @ a
-        return (np.linalg.norm(rel - h[:, None] * a, axis=1) - (r + k * h)) / sigma_m
+        _, h, _, d = _radial_terms(P, a, o)
+        return (d - (r + k * h)) / sigma_m
 
-    sol = least_squares(residuals, np.zeros(6), loss="huber", f_scale=huber_k, method="trf",
+    def jacobian(x: np.ndarray) -> np.ndarray:
+        a, o, _, k = unpack(x)
+        rel, h, u, _ = _radial_terms(P, a, o)
+        a_len = float(np.linalg.norm(cyl.axis + x[0] * e1 + x[1] * e2))
+        return np.column_stack([_tilt_shift_jacobian(rel, h, u, a, a_len, e1, e2, k), -np.ones(len(P)), -h]) / sigma_m
+
+    sol = least_squares(residuals, np.zeros(6), jac=jacobian, loss="huber", f_scale=huber_k, method="trf",
                         x_scale=[0.01, 0.01, 0.005, 0.005, 0.005, 0.01], max_nfev=100)
     a, o, r, k = unpack(sol.x)
     return Cylinder(a, o, r), float(k)
@@ -414,11 +518,8 @@ def fit_cylinder(points: np.ndarray, normals: np.ndarray, views: list[CylinderVi
     inl_final = np.abs(d3) < threshold_m
     n2, rms2 = 0, float("nan")
     if data:
-        r2 = []
-        for d in data:
-            r_px, r_edge = _view_terms(cyl, d, intr)
-            r2 += [np.linalg.norm(r_px, axis=1), np.abs(r_edge)]
-        r2c = np.concatenate(r2)
+        r_px, r_edge = _StackedViews.of(data, intr).residuals(cyl, intr)
+        r2c = np.concatenate([np.linalg.norm(r_px, axis=1), np.abs(r_edge)])
         n2, rms2 = len(r2c), float(np.sqrt(np.mean(r2c**2))) if len(r2c) else float("nan")
     return CylinderFit(cyl, int(inl_final.sum()), float(np.sqrt(np.mean(d3[inl_final] ** 2))) if inl_final.any()
                        else float("nan"), rms2, n2, bool(data))

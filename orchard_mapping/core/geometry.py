@@ -15,6 +15,7 @@ from scipy.spatial.transform import Rotation
 from orchard_mapping.errors import AlignmentError
 
 __all__ = [
+    "group_medians",
     "Similarity",
     "decompose_similarity",
     "make_transform",
@@ -27,6 +28,16 @@ __all__ = [
     "transform_points",
     "umeyama",
 ]
+
+
+def group_medians(groups: np.ndarray, values: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """(G,) the distinct ints of groups (N,) sorted, and (G,) the median of values (N,) in each: one sort
+    for all of them (np.median group by group, an image's rows one at a time, was most of its caller's time)."""
+    keys, counts = np.unique(groups, return_counts=True)
+    order = np.lexsort((values, groups))
+    vs, gs = values[order], groups[order]  # grouped, sorted within each group
+    starts = np.searchsorted(gs, keys)
+    return keys, 0.5 * (vs[starts + (counts - 1) // 2] + vs[starts + counts // 2])
 
 
 def quat_to_matrix(q: np.ndarray) -> np.ndarray:

@@ -120,7 +120,7 @@ def refit_fixed_radius(obs: PostObservation, radius_m: float) -> PostObservation
     truth they were 0.5 / 3.4 mm."""
     from scipy.optimize import least_squares
 
-    from orchard_mapping.core.cylinder import perpendicular_basis
+    from orchard_mapping.core.cylinder import _radial_terms, _tilt_shift_jacobian, perpendicular_basis
 
     e1, e2 = perpendicular_basis(obs.axis_cam)
 
@@ -129,7 +129,15 @@ def refit_fixed_radius(obs: PostObservation, radius_m: float) -> PostObservation
         return Cylinder(a / np.linalg.norm(a), obs.centre_cam + x[2] * e1 + x[3] * e2, radius_m)
 
     X = obs.points_cam.astype(float)
-    sol = least_squares(lambda x: point_distance(X, unpack(x)), np.zeros(4), loss="huber", f_scale=0.005)
+
+    def jacobian(x: np.ndarray) -> np.ndarray:
+        c = unpack(x)
+        rel, h, u, _ = _radial_terms(X, c.axis, c.origin)
+        return _tilt_shift_jacobian(rel, h, u, c.axis, float(np.linalg.norm(obs.axis_cam + x[0] * e1 + x[1] * e2)),
+                                    e1, e2)
+
+    sol = least_squares(lambda x: point_distance(X, unpack(x)), np.zeros(4), jac=jacobian, loss="huber",
+                        f_scale=0.005)
     c = unpack(sol.x)
     centre = c.origin + float((obs.centre_cam - c.origin) @ c.axis) * c.axis
     return replace(obs, axis_cam=c.axis, centre_cam=centre)

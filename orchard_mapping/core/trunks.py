@@ -31,7 +31,7 @@ import numpy as np
 
 from orchard_mapping.core.cylinder import (Cylinder, CylinderError, CylinderFit, CylinderView, fit_cylinder,
                                            point_distance, refine_cone_axis)
-from orchard_mapping.core.geometry import SlabIndex, transform_points
+from orchard_mapping.core.geometry import SlabIndex, group_medians, transform_points
 from orchard_mapping.core.detection import CLASS_TRUNK, Detection
 from orchard_mapping.core.ground import GroundParams, LocalGroundFit, fit_local_ground, ground_neighbourhood
 from orchard_mapping.core.odometry import backproject
@@ -285,8 +285,7 @@ def _band_rows_mask(det_mask: np.ndarray, depth: np.ndarray, intr: CameraIntrins
     out = np.zeros_like(det_mask)
     if len(v) == 0:
         return out
-    rows, starts = np.unique(v, return_index=True)  # v is sorted: np.nonzero scans row by row
-    med = np.array([np.median(c) for c in np.split(h, starts[1:])])  # median height per row
+    rows, med = group_medians(v, h)  # median height per row
     keep = rows[(med >= h_lo) & (med <= h_hi)]
     out[keep] = det_mask[keep]
     return out
