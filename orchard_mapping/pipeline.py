@@ -16,6 +16,7 @@ import tempfile
 import time
 from collections.abc import Iterator
 from collections.abc import Callable
+from concurrent.futures import Future, ThreadPoolExecutor
 from dataclasses import asdict, dataclass, field, replace
 from pathlib import Path
 from typing import Protocol
@@ -303,9 +304,14 @@ def finish_side(job: SideHandover, timings: Timings, detect: Detect | None = Non
     if cfg.input.mode == "rgbd":
         t0 = time.perf_counter()
         views = TrunkViews(cfg, side, stamps, ba.poses, detect=detect, intr=intr)
-        fused = fuse_keyframes(job.images, [k.frame_index for k in fe.keyframes], ba.poses, intr, cfg, views)
+        try:
+            fused = fuse_keyframes(job.images, [k.frame_index for k in fe.keyframes], ba.poses, intr, cfg, views)
+        finally:
+            views.close()
         points, colors = fused.points, fused.colors
-        timings.add(f"fusion_{side}", time.perf_counter() - t0 - views.seconds - views.post_seconds)
+        # Detection and post fits ran beside fusion: fusion's stage leaves out only the time it waited for them,
+        # so the stages can add up to more than the run took.
+        timings.add(f"fusion_{side}", time.perf_counter() - t0 - views.wait_seconds)
         timings.add(f"trunk_detection_{side}", views.seconds)
         if views.posts:
             t0 = time.perf_counter()
@@ -429,6 +435,20 @@ def trunk_detector(cfg: OrchardConfig, side: str):
 VIEW_MARGIN_PX = 24
 
 
+class _DetectionAnswer:
+    """The detector's answer for one keyframe, on its way (fuse_side's Deferred): waiting for it is timed."""
+
+    def __init__(self, future: Future, views: "TrunkViews") -> None:
+        self.future, self.views = future, views
+
+    def result(self) -> bool | Region:
+        t0 = time.perf_counter()
+        try:
+            return self.future.result()
+        finally:
+            self.views.wait_seconds += time.perf_counter() - t0
+
+
 class TrunkViews:
     """Gives the keyframes fusion is about to clean, trunks.detect_every_m apart, to the trunk detector
     (`select`: colour only) and has only those with a trunk detection cleaned (a third to a half of them on
@@ -451,18 +471,27 @@ class TrunkViews:
         self.posts: list[PostObservation] = []  # each post detection's own fit (core/posts.py), raw depth
         self._up = -poses[0][:3, 1] if len(poses) else np.array([0.0, -1.0, 0.0])  # odom: the first camera's up
         self._rng = np.random.default_rng(cfg.seed)
+        self._worker: ThreadPoolExecutor | None = None
+        self.wait_seconds = 0.0  # s fusion waited for the detector's answers
 
-    def select(self, k: int, color: np.ndarray, depth: np.ndarray | None = None) -> bool | Region:
+    def select(self, k: int, color: np.ndarray, depth: np.ndarray | None = None) -> "bool | _DetectionAnswer":
         """Detect on keyframe k if it is trunks.detect_every_m on from the last: the part of it fusion is to clean
-        (the rows and columns around its trunk detections, as `__call__` crops them), or False."""
+        (the rows and columns around its trunk detections, as `__call__` crops them), or False. The detector
+        runs on a thread of its own beside fusion, one keyframe after another (onnxruntime lets go of the GIL):
+        fusion waits for the answer only when the keyframe comes due for cleaning, clean_after_m later."""
         if self.detect is None:
             return False
         c = self.poses[k][:3, 3]
         if self._last is not None and np.linalg.norm(c - self._last) < self.cfg.trunks.detect_every_m - 1e-6:
             return False
         self._last = c
+        if self._worker is None:
+            self._worker = ThreadPoolExecutor(1, thread_name_prefix="trunk-detector")
+        return _DetectionAnswer(self._worker.submit(self._detect, k, color, depth), self)
+
+    def _detect(self, k: int, color: np.ndarray, depth: np.ndarray | None) -> bool | Region:
         t0 = time.perf_counter()
-        found = self.detect(color, float(self.stamps[k]))
+        found = self.detect(color, float(self.stamps[k]))  # type: ignore[misc]
         self.seconds += time.perf_counter() - t0
         if found is None:
             self.unavailable.append(k)
@@ -486,7 +515,14 @@ class TrunkViews:
         self._detections[k] = (dets, rect)
         return rect
 
+    def close(self) -> None:
+        """Let the detector's thread go (what it was still given is finished first)."""
+        if self._worker is not None:
+            self._worker.shutdown(wait=True, cancel_futures=True)
+            self._worker = None
+
     def __call__(self, k: int, depth: np.ndarray, color: np.ndarray | None) -> None:
+        """Keep what trunk modelling needs of keyframe k, cleaned (called by fusion after `select` chose it)."""
         dets, rect = self._detections.pop(k)
         dets = [replace(d, mask=ImagePatch.crop(np.asarray(d.mask, bool), rect)) for d in dets]
         self.views.append(TrunkView(k, float(self.stamps[k]), self.poses[k], ImagePatch.crop(depth, rect), dets))

@@ -348,6 +348,8 @@ class _StackedViews:
     ray_origin: np.ndarray  # (B, 3) m odom: the camera centre of each silhouette-edge ray
     ray_dir: np.ndarray  # (B, 3) unit odom
     px_per_m: np.ndarray  # (B,) fx / the trunk depth beside the edge
+    fx: float
+    fy: float
 
     @staticmethod
     def of(data: list[_ViewData], intr: CameraIntrinsics) -> "_StackedViews":
@@ -363,7 +365,7 @@ class _StackedViews:
             ray_origin=np.repeat(np.array([Ti[:3, 3] for Ti in T]).reshape(-1, 3), b, axis=0),
             ray_dir=np.concatenate([d.rays @ Ti[:3, :3].T for d, Ti in zip(data, T)]) if data else np.zeros((0, 3)),
             px_per_m=(intr.fx / np.maximum(np.concatenate([d.edge_depth for d in data]), 1e-3)) if data
-            else np.zeros(0))
+            else np.zeros(0), fx=intr.fx, fy=intr.fy)
 
     def residuals(self, cyl: Cylinder, intr: CameraIntrinsics) -> tuple[np.ndarray, np.ndarray]:
         """(M, 2) px depth-pixel terms and (B,) px edge terms of `cyl` (odom), as `view_residuals` gives them
@@ -381,6 +383,43 @@ class _StackedViews:
         cn = np.maximum(np.linalg.norm(c, axis=1), 1e-9)
         d_line = np.abs(np.einsum("bj,bj->b", c, self.ray_origin - O)) / cn  # ray line to axis line
         return res_px, (d_line - r) * self.px_per_m
+
+    def jacobian(self, cyl: Cylinder, axis_steps: tuple[np.ndarray, np.ndarray], shift_steps: tuple[np.ndarray, np.ndarray]
+                 ) -> tuple[np.ndarray, np.ndarray]:
+        """Derivatives of `residuals` ((M, 2, 5) and (B, 5)) with respect to: the axis moved by the two
+        axis_steps (d axis / d parameter, (3,) each), the origin moved along the two shift_steps (3,), the
+        radius. Closed form: by finite differences the 2D fits spent half their time on them."""
+        a, O, r = cyl.axis, cyl.origin, cyl.radius
+        rel = self.X - O
+        along = rel @ a
+        radial = rel - along[:, None] * a
+        dist = np.maximum(np.linalg.norm(radial, axis=1), 1e-9)
+        w = radial / dist[:, None]  # (M, 3) unit radial
+        Y = np.einsum("mij,mj->mi", self.R_cam_odom, O + along[:, None] * a + r * w) + self.t_cam_odom
+        z = np.maximum(Y[:, 2], 1e-3)
+        # d radial per parameter (M, 3, 4): tilting the axis by g, moving the origin by e
+        dR = np.stack([-(rel @ g)[:, None] * a - along[:, None] * g for g in axis_steps]
+                      + [np.broadcast_to(-(e - (e @ a) * a), rel.shape) for e in shift_steps], axis=2)
+        # the surface point S = X - radial + r w moves by -dR + (r / dist) (dR - (w . dR) w); the radius by w
+        k = (r / dist)[:, None, None]
+        dS = -dR + k * (dR - np.einsum("mi,mip->mp", w, dR)[:, None, :] * w[:, :, None])
+        dS = np.concatenate([dS, w[:, :, None]], axis=2)  # (M, 3, 5)
+        dY = np.einsum("mij,mjp->mip", self.R_cam_odom, dS)
+        J_px = -np.stack([self.fx * (dY[:, 0] * z[:, None] - Y[:, [0]] * dY[:, 2]),
+                          self.fy * (dY[:, 1] * z[:, None] - Y[:, [1]] * dY[:, 2])], axis=1) / (z**2)[:, None, None]
+        c = np.cross(self.ray_dir, a)  # (B, 3)
+        cn = np.maximum(np.linalg.norm(c, axis=1), 1e-9)
+        D = self.ray_origin - O
+        sgn = np.sign(np.einsum("bj,bj->b", c, D))
+        s_abs = np.abs(np.einsum("bj,bj->b", c, D))
+        J_edge = np.empty((len(c), 5))
+        for p, g in enumerate(axis_steps):
+            dc = np.cross(self.ray_dir, g)
+            J_edge[:, p] = sgn * np.einsum("bj,bj->b", dc, D) / cn - s_abs * np.einsum("bj,bj->b", c, dc) / cn**3
+        for p, e in enumerate(shift_steps):
+            J_edge[:, 2 + p] = -sgn * (c @ e) / cn
+        J_edge[:, 4] = -1.0
+        return J_px, J_edge * self.px_per_m[:, None]
 
 
 def _refine(parts: list[tuple[Cylinder, np.ndarray, list[_ViewData]]], intr: CameraIntrinsics, *,
@@ -410,20 +449,24 @@ def _refine(parts: list[tuple[Cylinder, np.ndarray, list[_ViewData]]], intr: Cam
                 res += [w2 * r_px.ravel(), w2 * r_edge]
         return np.concatenate(res)
 
-    def jacobian_3d(x: np.ndarray) -> np.ndarray:
-        J = np.zeros((sum(len(P) for _, P, _ in parts), len(x)))
-        row = 0
-        for i, ((c0, P, _), (e1, e2), cyl) in enumerate(zip(parts, bases, unpack(x))):
-            rel, h, u, _ = _radial_terms(P, cyl.axis, cyl.origin)
+    def jacobian(x: np.ndarray) -> np.ndarray:
+        blocks = []
+        for i, ((c0, P, _), (e1, e2), views, cyl) in enumerate(zip(parts, bases, stacked, unpack(x))):
             a_len = float(np.linalg.norm(c0.axis + x[4 * i] * e1 + x[4 * i + 1] * e2))
-            J[row:row + len(P), 4 * i:4 * i + 4] = _tilt_shift_jacobian(rel, h, u, cyl.axis, a_len, e1, e2)
-            J[row:row + len(P), -1] = -1.0
-            row += len(P)
-        return J / sigma_3d_m
+            rel, h, u, _ = _radial_terms(P, cyl.axis, cyl.origin)
+            J_part = [np.column_stack([_tilt_shift_jacobian(rel, h, u, cyl.axis, a_len, e1, e2), -np.ones(len(P))])
+                      / sigma_3d_m]
+            if views is not None:
+                steps = tuple((e - (cyl.axis @ e) * cyl.axis) / a_len for e in (e1, e2))
+                J_px, J_edge = views.jacobian(cyl, steps, (e1, e2))  # type: ignore[arg-type]
+                J_part += [w2 * J_px.reshape(-1, 5), w2 * J_edge]
+            J = np.concatenate(J_part)  # (rows of part i, 5): its own 4 parameters and the common radius
+            full = np.zeros((len(J), len(x)))
+            full[:, 4 * i:4 * i + 4], full[:, -1] = J[:, :4], J[:, 4]
+            blocks.append(full)
+        return np.concatenate(blocks)
 
-    # the 2D terms' derivatives by finite differences; the 3D term alone has them in closed form
-    jac = jacobian_3d if all(v is None for v in stacked) else "2-point"
-    sol = least_squares(residuals, np.zeros(4 * len(parts) + 1), jac=jac, loss="huber", f_scale=huber_k,
+    sol = least_squares(residuals, np.zeros(4 * len(parts) + 1), jac=jacobian, loss="huber", f_scale=huber_k,
                         method="trf", x_scale=[0.05, 0.05, 0.01, 0.01] * len(parts) + [0.005], max_nfev=100)
     return unpack(sol.x)
 

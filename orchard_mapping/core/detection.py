@@ -98,6 +98,9 @@ class OnnxTrunkDetector:
         opts = ort.SessionOptions()
         opts.intra_op_num_threads = int(threads)
         opts.inter_op_num_threads = 1
+        # Its threads sleep between frames rather than spin: the detector runs beside fusion on the same cores
+        # (the pipeline), where spinning threads slowed both.
+        opts.add_session_config_entry("session.intra_op.allow_spinning", "0")
         opts.log_severity_level = 3  # errors only: torchvision exports warn about every variable-size output
         try:
             self.session = ort.InferenceSession(str(self.path), opts, providers=["CPUExecutionProvider"])
