@@ -39,7 +39,7 @@ from orchard_mapping.core.cylinder import Cylinder
 from orchard_mapping.core.trunks import TrunkLandmark, TrunkView, build_trunk_landmarks, ground_around_trunk
 from orchard_mapping.core.detection import CLASS_POST, CLASS_TRUNK
 from orchard_mapping.core.posts import PostObservation, build_post_landmarks, fit_post_view, post_shapes
-from orchard_mapping.core.types import CameraIntrinsics, ImagePatch, RGBDFrame, StampedTrajectory
+from orchard_mapping.core.types import CameraIntrinsics, ImagePatch, RGBDFrame, StampedTrajectory, mask_bounds
 from orchard_mapping.errors import AlignmentError, BagError, BagFormatError, MergeRefusedError
 from orchard_mapping.io.bags import RGBDSequence, read_rgbd
 from orchard_mapping.io.figures import RowView, write_row_png
@@ -202,12 +202,16 @@ class SideSession:
     same frames give the same side map."""
 
     def __init__(self, side: str, intrinsics, cfg: OrchardConfig, images: KeyframeImages, bag: str = "",
-                 detect: Detect | None = None) -> None:
+                 detect: Detect | None = None, detect_early: bool = False) -> None:
         self.side, self.intrinsics, self.cfg, self.images, self.bag = side, intrinsics, cfg, images, bag
         self.detect = detect  # None: the configured detector in this process (trunk_detector())
         self.fe = _new_front_end(intrinsics, cfg)
         self.frames = 0
         self.seconds = 0.0  # s spent in the front end
+        # detect_early: trunk detection on a thread beside the front end, as keyframes are made, rather than
+        # during fusion (orchard-map run; the live node keeps its process for tracking the camera)
+        self.early = (EarlyDetections(cfg, side, detect)
+                      if detect_early and cfg.trunks.source != "off" and cfg.input.mode == "rgbd" else None)
 
     def add(self, frame: RGBDFrame) -> tuple[np.ndarray, bool]:
         """Track one frame: (T_odom_cam (4, 4), NaN when it could not be placed; whether it became a keyframe)."""
@@ -217,6 +221,8 @@ class SideSession:
         new = len(self.fe.keyframes) > n
         if new:
             self.images.keep(frame)
+            if self.early is not None:
+                self.early.offer(self.fe.keyframes[-1], frame)
         self.frames += 1
         self.seconds += time.perf_counter() - t0
         return pose, new
@@ -224,8 +230,10 @@ class SideSession:
     def handover(self) -> "SideHandover":
         """What finishing the side needs, without the front end's live state (it pickles: the live odometry
         node finishes a side in another process)."""
+        early = self.early.results() if self.early is not None else None
         return SideHandover(self.side, self.intrinsics, self.cfg, self.images, self.bag, self.fe.result(),
-                            list(self.fe.events), self.frames, self.seconds)
+                            list(self.fe.events), self.frames, self.seconds, early,
+                            self.early.seconds if self.early is not None else 0.0)
 
     def finish(self, timings: Timings) -> SideMap:
         """Everything after the front end; the side map. Lets go of the kept keyframe images."""
@@ -248,6 +256,10 @@ class SideHandover:
     events: list[str]
     frames: int  # frames tracked
     seconds: float  # s spent in the front end
+    # frame index -> its trunk detections (None: the detector did not answer), for the keyframes detected on
+    # beside the front end (SideSession's detect_early); None: detect during fusion
+    detections: "dict[int, list | None] | None" = None
+    detection_seconds: float = 0.0  # s the early detector took
 
 
 # The disparity sd the bundle adjustment should assume, per px of its disparity residuals' robust sd, and how far
@@ -303,7 +315,9 @@ def finish_side(job: SideHandover, timings: Timings, detect: Detect | None = Non
     stamps = np.array([k.stamp for k in fe.keyframes])
     if cfg.input.mode == "rgbd":
         t0 = time.perf_counter()
-        views = TrunkViews(cfg, side, stamps, ba.poses, detect=detect, intr=intr)
+        views = TrunkViews(cfg, side, stamps, ba.poses, detect=detect, intr=intr, detections=job.detections,
+                           frame_index=[k.frame_index for k in fe.keyframes])
+        views.seconds += job.detection_seconds
         try:
             fused = fuse_keyframes(job.images, [k.frame_index for k in fe.keyframes], ba.poses, intr, cfg, views)
         finally:
@@ -348,7 +362,8 @@ def reconstruct_side(seq: RGBDSequence, side: str, cfg: OrchardConfig, timings: 
                      progress: Progress | None = None) -> SideMap:
     """One side of a bag through a `SideSession` (fusion reads the keyframes' images from the bag again)."""
     n = int(np.sum(_side_mask(seq, side))) if labelled else len(seq)
-    session = SideSession(side, seq.intrinsics, cfg, BagKeyframeImages(seq, side, labelled), bag=seq.bag)
+    session = SideSession(side, seq.intrinsics, cfg, BagKeyframeImages(seq, side, labelled), bag=seq.bag,
+                          detect_early=True)
     t0 = time.perf_counter()
     for i, frame in enumerate(_frames_of(seq, side, labelled)):
         session.add(frame)
@@ -372,7 +387,8 @@ def reconstruct_drive(seq: RGBDSequence, cfg: OrchardConfig, timings: Timings,
                 raise BagFormatError(f"the drive turns back to the {turns.side} side at frame {i} ({frame.stamp:.3f} s): "
                                      "one bag holds one drive round one row (front, U-turn, back)", bag=seq.bag)
             session = sessions[turns.side] = SideSession(turns.side, seq.intrinsics, cfg,
-                                                         BagKeyframeImages(seq, turns.side, False), bag=seq.bag)
+                                                         BagKeyframeImages(seq, turns.side, False), bag=seq.bag,
+                                                         detect_early=True)
             t0 = time.perf_counter()
         pose, _ = session.add(frame)
         if turns.update(pose):
@@ -435,6 +451,47 @@ def trunk_detector(cfg: OrchardConfig, side: str):
 VIEW_MARGIN_PX = 24
 
 
+class EarlyDetections:
+    """Trunk detection beside the front end: each keyframe trunks.detect_every_m on from the last (by the front
+    end's poses) goes to the detector on a thread of its own as the keyframe is made. The front end is mostly
+    Python on one core and onnxruntime lets go of the GIL, so the detector uses the other: on the 10-tree
+    standard row this hid most of its ~4 s per side, which it took after bundle adjustment before. Masks are
+    kept as the part of the frame around them."""
+
+    def __init__(self, cfg: OrchardConfig, side: str, detect: Detect | None = None) -> None:
+        self.detect = detect or trunk_detector(cfg, side)
+        self.spacing_m = cfg.trunks.detect_every_m
+        self.seconds = 0.0  # s in the detector
+        self._last: np.ndarray | None = None
+        self._worker = ThreadPoolExecutor(1, thread_name_prefix=f"trunk-detector-{side}")
+        self._pending: dict[int, Future] = {}  # frame index -> its detections, on their way
+
+    def offer(self, keyframe, frame: RGBDFrame) -> None:
+        """A keyframe (core.sidemap.Keyframe) just made from `frame`: detect on it if it is far enough on."""
+        c = keyframe.T_odom_cam[:3, 3]
+        if not np.all(np.isfinite(c)) or (self._last is not None
+                                            and np.linalg.norm(c - self._last) < self.spacing_m - 1e-6):
+            return
+        self._last = c
+        self._pending[keyframe.frame_index] = self._worker.submit(self._detect, frame.color, frame.stamp)
+
+    def _detect(self, color: np.ndarray, stamp: float) -> list | None:
+        t0 = time.perf_counter()
+        found = self.detect(color, stamp)
+        self.seconds += time.perf_counter() - t0
+        if found is None:
+            return None
+        return [replace(d, mask=ImagePatch.crop(np.asarray(d.mask, bool), mask_bounds(np.asarray(d.mask, bool))))
+                for d in found]
+
+    def results(self) -> dict[int, list | None]:
+        """Frame index -> detections (None: the detector did not answer), once all are in; the thread is let go."""
+        try:
+            return {fi: f.result() for fi, f in self._pending.items()}
+        finally:
+            self._worker.shutdown(wait=True, cancel_futures=True)
+
+
 class _DetectionAnswer:
     """The detector's answer for one keyframe, on its way (fuse_side's Deferred): waiting for it is timed."""
 
@@ -458,9 +515,13 @@ class TrunkViews:
     seen, not with the row's frames."""
 
     def __init__(self, cfg: OrchardConfig, side: str, stamps: np.ndarray, poses: np.ndarray,
-                 detect: Detect | None = None, intr: CameraIntrinsics | None = None) -> None:
+                 detect: Detect | None = None, intr: CameraIntrinsics | None = None,
+                 detections: "dict[int, list | None] | None" = None, frame_index: list[int] | None = None) -> None:
         self.cfg, self.stamps, self.poses, self.intr = cfg, stamps, poses, intr
-        self.detect = None if cfg.trunks.source == "off" else (detect or trunk_detector(cfg, side))
+        # detections made beside the front end (frame index -> detections) and keyframe k's frame index
+        self.early, self.frame_index = detections, frame_index
+        self.detect = None if cfg.trunks.source == "off" or detections is not None else (
+            detect or trunk_detector(cfg, side))
         self.unavailable: list[int] = []  # keyframes the detector could not answer for
         self.views: list[TrunkView] = []
         self.seconds = 0.0  # s spent in the detector and cropping
@@ -479,6 +540,9 @@ class TrunkViews:
         (the rows and columns around its trunk detections, as `__call__` crops them), or False. The detector
         runs on a thread of its own beside fusion, one keyframe after another (onnxruntime lets go of the GIL):
         fusion waits for the answer only when the keyframe comes due for cleaning, clean_after_m later."""
+        if self.early is not None:  # detected beside the front end: keyframes not detected on are not cleaned
+            fi = self.frame_index[k]  # type: ignore[index]
+            return self._answer(k, self.early[fi], depth) if fi in self.early else False
         if self.detect is None:
             return False
         c = self.poses[k][:3, 3]
@@ -493,6 +557,10 @@ class TrunkViews:
         t0 = time.perf_counter()
         found = self.detect(color, float(self.stamps[k]))  # type: ignore[misc]
         self.seconds += time.perf_counter() - t0
+        return self._answer(k, found, depth)
+
+    def _answer(self, k: int, found: list | None, depth: np.ndarray | None) -> bool | Region:
+        """Keyframe k's posts fitted, its trunk detections kept: the region to clean, or False."""
         if found is None:
             self.unavailable.append(k)
             return False
