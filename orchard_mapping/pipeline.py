@@ -196,22 +196,21 @@ class SpooledKeyframeImages:
 
 class SideSession:
     """One side's reconstruction fed a frame at a time: `add` runs the front end on each frame as it comes
-    (from a bag, or from the camera topics in the live odometry node), `finish` does the rest once the side
-    is over (loop detection, pose graph, bundle adjustment, TSDF fusion with trunk detection, trunk
-    cylinders and local grounds). `orchard-map run` and the node graph go through this same class, so the
+    (from a bag, or from the camera topics in the live odometry node) and hands keyframes to the trunk
+    detector's thread, `finish` does the rest once the side is over (loop detection, pose graph, bundle
+    adjustment, TSDF fusion, trunk cylinders and local grounds). `orchard-map run` and the node graph go through this same class, so the
     same frames give the same side map."""
 
     def __init__(self, side: str, intrinsics, cfg: OrchardConfig, images: KeyframeImages, bag: str = "",
-                 detect: Detect | None = None, detect_early: bool = False) -> None:
+                 detect: Detect | None = None) -> None:
         self.side, self.intrinsics, self.cfg, self.images, self.bag = side, intrinsics, cfg, images, bag
         self.detect = detect  # None: the configured detector in this process (trunk_detector())
         self.fe = _new_front_end(intrinsics, cfg)
         self.frames = 0
         self.seconds = 0.0  # s spent in the front end
-        # detect_early: trunk detection on a thread beside the front end, as keyframes are made, rather than
-        # during fusion (orchard-map run; the live node keeps its process for tracking the camera)
+        # trunk detection on a thread beside the front end, as keyframes are made
         self.early = (EarlyDetections(cfg, side, detect)
-                      if detect_early and cfg.trunks.source != "off" and cfg.input.mode == "rgbd" else None)
+                      if cfg.trunks.source != "off" and cfg.input.mode == "rgbd" else None)
 
     def add(self, frame: RGBDFrame) -> tuple[np.ndarray, bool]:
         """Track one frame: (T_odom_cam (4, 4), NaN when it could not be placed; whether it became a keyframe)."""
@@ -230,7 +229,7 @@ class SideSession:
     def handover(self) -> "SideHandover":
         """What finishing the side needs, without the front end's live state (it pickles: the live odometry
         node finishes a side in another process)."""
-        early = self.early.results() if self.early is not None else None
+        early = self.early.results() if self.early is not None else {}
         return SideHandover(self.side, self.intrinsics, self.cfg, self.images, self.bag, self.fe.result(),
                             list(self.fe.events), self.frames, self.seconds, early,
                             self.early.seconds if self.early is not None else 0.0)
@@ -238,7 +237,7 @@ class SideSession:
     def finish(self, timings: Timings) -> SideMap:
         """Everything after the front end; the side map. Lets go of the kept keyframe images."""
         try:
-            return finish_side(self.handover(), timings, self.detect)
+            return finish_side(self.handover(), timings)
         finally:
             self.images.close()
 
@@ -256,10 +255,10 @@ class SideHandover:
     events: list[str]
     frames: int  # frames tracked
     seconds: float  # s spent in the front end
-    # frame index -> its trunk detections (None: the detector did not answer), for the keyframes detected on
-    # beside the front end (SideSession's detect_early); None: detect during fusion
-    detections: "dict[int, list | None] | None" = None
-    detection_seconds: float = 0.0  # s the early detector took
+    # frame index -> its trunk detections (None: the detector did not answer), for the keyframes the detector
+    # was given beside the front end (EarlyDetections); empty without trunks
+    detections: "dict[int, list | None]" = field(default_factory=dict)
+    detection_seconds: float = 0.0  # s the detector took
 
 
 # The disparity sd the bundle adjustment should assume, per px of its disparity residuals' robust sd, and how far
@@ -271,9 +270,9 @@ DISPARITY_SIGMA_PER_RESIDUAL_SD = 10.0
 DISPARITY_HINT_RATIO = 3.0
 
 
-def finish_side(job: SideHandover, timings: Timings, detect: Detect | None = None) -> SideMap:
-    """Loop detection, pose graph, bundle adjustment, TSDF fusion with trunk detection, trunk cylinders and
-    local grounds: the side map. detect: None for the configured detector in this process."""
+def finish_side(job: SideHandover, timings: Timings) -> SideMap:
+    """Loop detection, pose graph, bundle adjustment, TSDF fusion (cleaning the keyframes with a trunk
+    detection), trunk cylinders and local grounds: the side map."""
     cfg, side, intr = job.cfg, job.side, job.intrinsics
     timings.add(f"front_end_{side}", job.seconds)
     for event in job.events:
@@ -315,18 +314,12 @@ def finish_side(job: SideHandover, timings: Timings, detect: Detect | None = Non
     stamps = np.array([k.stamp for k in fe.keyframes])
     if cfg.input.mode == "rgbd":
         t0 = time.perf_counter()
-        views = TrunkViews(cfg, side, stamps, ba.poses, detect=detect, intr=intr, detections=job.detections,
-                           frame_index=[k.frame_index for k in fe.keyframes])
-        views.seconds += job.detection_seconds
-        try:
-            fused = fuse_keyframes(job.images, [k.frame_index for k in fe.keyframes], ba.poses, intr, cfg, views)
-        finally:
-            views.close()
+        views = TrunkViews(cfg, stamps, ba.poses, intr, job.detections, [k.frame_index for k in fe.keyframes])
+        fused = fuse_keyframes(job.images, [k.frame_index for k in fe.keyframes], ba.poses, intr, cfg, views)
         points, colors = fused.points, fused.colors
-        # Detection and post fits ran beside fusion: fusion's stage leaves out only the time it waited for them,
-        # so the stages can add up to more than the run took.
-        timings.add(f"fusion_{side}", time.perf_counter() - t0 - views.wait_seconds)
-        timings.add(f"trunk_detection_{side}", views.seconds)
+        timings.add(f"fusion_{side}", time.perf_counter() - t0 - views.post_seconds)
+        # the detector ran beside the front end: its time overlaps the front end's stage
+        timings.add(f"trunk_detection_{side}", job.detection_seconds)
         if views.posts:
             t0 = time.perf_counter()
             posts = build_post_landmarks(views.posts, ba.poses)
@@ -362,8 +355,7 @@ def reconstruct_side(seq: RGBDSequence, side: str, cfg: OrchardConfig, timings: 
                      progress: Progress | None = None) -> SideMap:
     """One side of a bag through a `SideSession` (fusion reads the keyframes' images from the bag again)."""
     n = int(np.sum(_side_mask(seq, side))) if labelled else len(seq)
-    session = SideSession(side, seq.intrinsics, cfg, BagKeyframeImages(seq, side, labelled), bag=seq.bag,
-                          detect_early=True)
+    session = SideSession(side, seq.intrinsics, cfg, BagKeyframeImages(seq, side, labelled), bag=seq.bag)
     t0 = time.perf_counter()
     for i, frame in enumerate(_frames_of(seq, side, labelled)):
         session.add(frame)
@@ -387,8 +379,7 @@ def reconstruct_drive(seq: RGBDSequence, cfg: OrchardConfig, timings: Timings,
                 raise BagFormatError(f"the drive turns back to the {turns.side} side at frame {i} ({frame.stamp:.3f} s): "
                                      "one bag holds one drive round one row (front, U-turn, back)", bag=seq.bag)
             session = sessions[turns.side] = SideSession(turns.side, seq.intrinsics, cfg,
-                                                         BagKeyframeImages(seq, turns.side, False), bag=seq.bag,
-                                                         detect_early=True)
+                                                         BagKeyframeImages(seq, turns.side, False), bag=seq.bag)
             t0 = time.perf_counter()
         pose, _ = session.add(frame)
         if turns.update(pose):
@@ -492,79 +483,39 @@ class EarlyDetections:
             self._worker.shutdown(wait=True, cancel_futures=True)
 
 
-class _DetectionAnswer:
-    """The detector's answer for one keyframe, on its way (fuse_side's Deferred): waiting for it is timed."""
-
-    def __init__(self, future: Future, views: "TrunkViews") -> None:
-        self.future, self.views = future, views
-
-    def result(self) -> bool | Region:
-        t0 = time.perf_counter()
-        try:
-            return self.future.result()
-        finally:
-            self.views.wait_seconds += time.perf_counter() - t0
-
-
 class TrunkViews:
-    """Gives the keyframes fusion is about to clean, trunks.detect_every_m apart, to the trunk detector
-    (`select`: colour only) and has only those with a trunk detection cleaned (a third to a half of them on
+    """Takes the detections made beside the front end (`EarlyDetections`) as fusion comes to their keyframes
+    (`select`), fits the posts they found, and has only the keyframes with a trunk detection cleaned (a third to a half of them on
     the simulated rows: cleaning is most of fusion's time); then keeps what trunk modelling and the two-side
     diameter need of each (`__call__`, with its cleaned depth): pose, detections, and depth and masks
     cropped around the detections (ImagePatch). Frames are dropped as they go: memory grows with the trunks
     seen, not with the row's frames."""
 
-    def __init__(self, cfg: OrchardConfig, side: str, stamps: np.ndarray, poses: np.ndarray,
-                 detect: Detect | None = None, intr: CameraIntrinsics | None = None,
-                 detections: "dict[int, list | None] | None" = None, frame_index: list[int] | None = None) -> None:
+    def __init__(self, cfg: OrchardConfig, stamps: np.ndarray, poses: np.ndarray, intr: CameraIntrinsics,
+                 detections: dict[int, list | None], frame_index: list[int]) -> None:
         self.cfg, self.stamps, self.poses, self.intr = cfg, stamps, poses, intr
-        # detections made beside the front end (frame index -> detections) and keyframe k's frame index
-        self.early, self.frame_index = detections, frame_index
-        self.detect = None if cfg.trunks.source == "off" or detections is not None else (
-            detect or trunk_detector(cfg, side))
+        # frame index -> the detections made beside the front end; keyframe k's frame index
+        self.detections, self.frame_index = detections, frame_index
         self.unavailable: list[int] = []  # keyframes the detector could not answer for
         self.views: list[TrunkView] = []
-        self.seconds = 0.0  # s spent in the detector and cropping
         self.post_seconds = 0.0  # s spent fitting posts
-        self._last: np.ndarray | None = None
         # keyframe -> its trunk detections and the part of the frame around them, until it is cleaned
         self._detections: dict[int, tuple[list, Region]] = {}
         self.posts: list[PostObservation] = []  # each post detection's own fit (core/posts.py), raw depth
         self._up = -poses[0][:3, 1] if len(poses) else np.array([0.0, -1.0, 0.0])  # odom: the first camera's up
         self._rng = np.random.default_rng(cfg.seed)
-        self._worker: ThreadPoolExecutor | None = None
-        self.wait_seconds = 0.0  # s fusion waited for the detector's answers
 
-    def select(self, k: int, color: np.ndarray, depth: np.ndarray | None = None) -> "bool | _DetectionAnswer":
-        """Detect on keyframe k if it is trunks.detect_every_m on from the last: the part of it fusion is to clean
-        (the rows and columns around its trunk detections, as `__call__` crops them), or False. The detector
-        runs on a thread of its own beside fusion, one keyframe after another (onnxruntime lets go of the GIL):
-        fusion waits for the answer only when the keyframe comes due for cleaning, clean_after_m later."""
-        if self.early is not None:  # detected beside the front end: keyframes not detected on are not cleaned
-            fi = self.frame_index[k]  # type: ignore[index]
-            return self._answer(k, self.early[fi], depth) if fi in self.early else False
-        if self.detect is None:
+    def select(self, k: int, color: np.ndarray, depth: np.ndarray | None = None) -> bool | Region:
+        """Keyframe k, if the detector saw it: its posts fitted (raw depth), and the part of it fusion is to
+        clean (the rows and columns around its trunk detections, as `__call__` crops them), or False."""
+        fi = self.frame_index[k]
+        if fi not in self.detections:
             return False
-        c = self.poses[k][:3, 3]
-        if self._last is not None and np.linalg.norm(c - self._last) < self.cfg.trunks.detect_every_m - 1e-6:
-            return False
-        self._last = c
-        if self._worker is None:
-            self._worker = ThreadPoolExecutor(1, thread_name_prefix="trunk-detector")
-        return _DetectionAnswer(self._worker.submit(self._detect, k, color, depth), self)
-
-    def _detect(self, k: int, color: np.ndarray, depth: np.ndarray | None) -> bool | Region:
-        t0 = time.perf_counter()
-        found = self.detect(color, float(self.stamps[k]))  # type: ignore[misc]
-        self.seconds += time.perf_counter() - t0
-        return self._answer(k, found, depth)
-
-    def _answer(self, k: int, found: list | None, depth: np.ndarray | None) -> bool | Region:
-        """Keyframe k's posts fitted, its trunk detections kept: the region to clean, or False."""
+        found = self.detections[fi]
         if found is None:
             self.unavailable.append(k)
             return False
-        if depth is not None and self.intr is not None and self.cfg.semantic_ba.use_posts:
+        if depth is not None and self.cfg.semantic_ba.use_posts:
             # A post is fitted from this frame's raw depth at once: its observation needs no cleaned depth
             # (RANSAC and the Huber refit reject stray pixels), so a frame with posts only is not cleaned.
             t0 = time.perf_counter()
@@ -582,12 +533,6 @@ class TrunkViews:
                 int(np.ceil(boxes[:, 3].max())) + m, int(np.ceil(boxes[:, 2].max())) + m)
         self._detections[k] = (dets, rect)
         return rect
-
-    def close(self) -> None:
-        """Let the detector's thread go (what it was still given is finished first)."""
-        if self._worker is not None:
-            self._worker.shutdown(wait=True, cancel_futures=True)
-            self._worker = None
 
     def __call__(self, k: int, depth: np.ndarray, color: np.ndarray | None) -> None:
         """Keep what trunk modelling needs of keyframe k, cleaned (called by fusion after `select` chose it)."""

@@ -30,7 +30,7 @@ from __future__ import annotations
 import time
 from collections.abc import Callable, Iterable
 from dataclasses import dataclass, field, replace
-from typing import Literal, Protocol
+from typing import Literal
 
 import cv2
 import numpy as np
@@ -480,18 +480,8 @@ class FusionParams:
 # keyframe's depth is cleaned, so the caller can use it and let it go (the streaming pipeline).
 OnCleaned = Callable[[int, np.ndarray, "np.ndarray | None"], None]
 # Called with (keyframe position, colour (H, W, 3) uint8, raw depth) as a keyframe comes due for cleaning:
-# False skips it, True cleans the whole frame, a Region (r0, c0, r1, c1) px cleans only that part. Or a
-# Deferred answer (a concurrent.futures.Future, say) of one of these, waited for only when the keyframe is
-# to be cleaned, clean_after_m later: a trunk detector runs beside the integration in the meantime.
-Select = Callable[[int, np.ndarray, np.ndarray], "bool | Region | Deferred"]
-
-
-class Deferred(Protocol):
-    def result(self) -> "bool | Region": ...
-
-
-def _answer(chosen: "bool | Region | Deferred") -> "bool | Region":
-    return chosen.result() if hasattr(chosen, "result") else chosen  # type: ignore[union-attr]
+# False skips it, True cleans the whole frame, a Region (r0, c0, r1, c1) px cleans only that part.
+Select = Callable[[int, np.ndarray, np.ndarray], "bool | Region"]
 
 
 def fuse_side(frames: Iterable[tuple[np.ndarray, np.ndarray, np.ndarray]], intr: CameraIntrinsics, *,
@@ -545,8 +535,8 @@ def fuse_side(frames: Iterable[tuple[np.ndarray, np.ndarray, np.ndarray]], intr:
     reach = depth_max_m + sdf_trunc_m + side.block_m * np.sqrt(3.0)
     key_set = None if keyframes is None else set(int(k) for k in keyframes)
     kept: list[tuple[np.ndarray, np.ndarray, np.ndarray]] = []  # frames held for local grids
-    # keyframes to clean: (i, raw, colour, T, select's answer: True, a Region, or one still Deferred)
-    pending: list[tuple[int, np.ndarray, np.ndarray | None, np.ndarray, "bool | Region | Deferred"]] = []
+    # keyframes to clean: (i, raw, colour, T, region to clean or None for the whole frame)
+    pending: list[tuple[int, np.ndarray, np.ndarray | None, np.ndarray, Region | None]] = []
     cleaned: dict[int, np.ndarray] = {}
     color_key: dict[int, np.ndarray] = {}  # keyframe -> its colour image (keep_color)
     chunks: list[tuple[np.ndarray, np.ndarray]] = []  # the cloud, extracted as the volume moves on
@@ -569,8 +559,7 @@ def fuse_side(frames: Iterable[tuple[np.ndarray, np.ndarray, np.ndarray]], intr:
     # the whole frame's.
     region_margin = window_px + DEFAULT_FLOAT_WINDOW // 2 + 2
 
-    def clean(k: int, raw: np.ndarray, color: np.ndarray | None, T: np.ndarray, chosen: "bool | Region") -> None:
-        region = None if chosen is True else tuple(int(x) for x in chosen)  # type: ignore[union-attr]
+    def clean(k: int, raw: np.ndarray, color: np.ndarray | None, T: np.ndarray, region: Region | None) -> None:
         if region is None:
             r0, c0, r1, c1 = 0, 0, intr.height, intr.width
         else:
@@ -594,14 +583,12 @@ def fuse_side(frames: Iterable[tuple[np.ndarray, np.ndarray, np.ndarray]], intr:
         """Clean the keyframes clean_after_m behind `here` (all of them at the end: None), then free the blocks
         no camera still needs."""
         ready = [p for p in pending if here is None or np.linalg.norm(p[3][:3, 3] - here) >= clean_after_m]
-        del pending[:len(ready)]
-        ready = [(k, raw, color, T, chosen) for k, raw, color, T, deferred in ready
-                 if (chosen := _answer(deferred)) is not False]
         if ready:
             side.focus(np.array([p[3][:3, 3] for p in ready]))
-            for k, raw, color, T, chosen in ready:
-                clean(k, raw, color, T, chosen)
+            for k, raw, color, T, region in ready:
+                clean(k, raw, color, T, region)
             side.focus(None)
+            del pending[:len(ready)]
         if here is not None:
             retire(here)
 
@@ -630,7 +617,8 @@ def fuse_side(frames: Iterable[tuple[np.ndarray, np.ndarray, np.ndarray]], intr:
             last_cleaned = here
             chosen = True if select is None else select(i, np.asarray(color), d)
             if chosen is not False:
-                pending.append((i, d, np.asarray(color) if keep_color else None, Tc, chosen))
+                region = None if chosen is True else tuple(int(x) for x in chosen)
+                pending.append((i, d, np.asarray(color) if keep_color else None, Tc, region))
         if mode == "local":
             kept.append((d, np.asarray(color), Tc))
         elif pending and np.linalg.norm(pending[0][3][:3, 3] - here) >= clean_after_m + clean_batch_m:
@@ -662,8 +650,7 @@ def fuse_side(frames: Iterable[tuple[np.ndarray, np.ndarray, np.ndarray]], intr:
             frames_done += local.frames_integrated
             return local.raycast_depth(T)
 
-        for k, raw, color, T, deferred in pending:
-            if (chosen := _answer(deferred)) is not False:
-                clean(k, raw, color, T, chosen)
+        for k, raw, color, T, region in pending:
+            clean(k, raw, color, T, region)
     return FusionResult(points, colors, cleaned, seconds / max(1, frames_done), time.perf_counter() - t_start, mode,
                         color_key, peak_blocks=peak[0], blocks_retired=side.blocks_retired)

@@ -9,9 +9,9 @@ comes first.
 
 The child is started with `spawn` (the node's DDS threads must not be forked) and gets the side's
 handover (pipeline.SideHandover: the front end's result, the spooled keyframe images' folder, the
-configuration). Trunk detection requests go back to the parent over the pipe when the node asks the
-trunk_detector node (the parent's `detect` callable answers them); with the configured detector the
-child creates its own. The side map comes back whole (pickled between the node's own processes).
+configuration, and the trunk detections made beside the front end in the node's process: by the
+trunk_detector node or the configured detector, pipeline.EarlyDetections). The side map comes back whole
+(pickled between the node's own processes).
 """
 
 from __future__ import annotations
@@ -22,7 +22,7 @@ import traceback
 
 from orchard_mapping.core.sidemap import SideMap
 from orchard_mapping.errors import OrchardMappingError
-from orchard_mapping.pipeline import Detect, SideSession, Timings, finish_side
+from orchard_mapping.pipeline import SideSession, Timings, finish_side
 
 __all__ = ["CHILD_NICE", "SideFinishError", "finish_in_child"]
 
@@ -38,19 +38,14 @@ class SideFinishError(OrchardMappingError):
         self.typed = typed  # the child raised an OrchardMappingError (bad input), not a bug
 
 
-def _child(job, conn, remote: bool) -> None:
+def _child(job, conn) -> None:
     try:
         os.nice(CHILD_NICE)
     except OSError:
         pass
-
-    def ask(color, stamp):
-        conn.send(("detect", (color, stamp)))
-        return conn.recv()
-
     try:
         timings = Timings()
-        sm = finish_side(job, timings, ask if remote else None)
+        sm = finish_side(job, timings)
         conn.send(("done", (sm, dict(timings.stages))))
     except OrchardMappingError as err:
         conn.send(("error", (str(err), traceback.format_exc(), True)))
@@ -60,13 +55,12 @@ def _child(job, conn, remote: bool) -> None:
         conn.close()
 
 
-def finish_in_child(session: SideSession, timings: Timings, detect: Detect | None = None) -> SideMap:
-    """session.finish(timings) run in a child process; `detect` (the parent's) answers the child's trunk
-    detection requests, None: the child uses the configured detector. Lets go of the keyframe images.
-    SideFinishError when the child failed or died."""
+def finish_in_child(session: SideSession, timings: Timings) -> SideMap:
+    """session.finish(timings) run in a child process. Lets go of the keyframe images. SideFinishError when
+    the child failed or died."""
     ctx = mp.get_context("spawn")
     parent, child = ctx.Pipe()
-    proc = ctx.Process(target=_child, args=(session.handover(), child, detect is not None),
+    proc = ctx.Process(target=_child, args=(session.handover(), child),
                        name=f"finish-{session.side}", daemon=True)
     try:
         proc.start()
@@ -78,9 +72,7 @@ def finish_in_child(session: SideSession, timings: Timings, detect: Detect | Non
                 proc.join(timeout=10)
                 raise SideFinishError(f"{session.side} side: the process finishing it died "
                                       f"(exit code {proc.exitcode})", typed=False) from None
-            if kind == "detect":
-                parent.send(detect(*payload))
-            elif kind == "done":
+            if kind == "done":
                 sm, stages = payload
                 for stage, seconds in stages.items():
                     timings.add(stage, seconds)

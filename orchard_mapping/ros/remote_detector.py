@@ -1,4 +1,4 @@
-"""The odometry node's side of the trunk detector node: `detect(colour, stamp)` as `pipeline.TrunkViews`
+"""The odometry node's side of the trunk detector node: `detect(colour, stamp)` as `pipeline.EarlyDetections`
 calls it, answered by the `trunk_detector` node over topics (request: the keyframe's colour image;
 answer: the detections with the same stamp).
 

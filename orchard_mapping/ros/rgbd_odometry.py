@@ -1,8 +1,9 @@
 """`rgbd_odometry`: the camera topics in, each side's odometry and, when the side ends, its side map out.
 
 Per side it runs the same `SideSession` as `orchard-map run`: the front end on each frame as it comes,
-each keyframe's images spooled to disk; when the side ends (the side topic changes or says `end`) loop
-detection, bundle adjustment, TSDF fusion with trunk detection, trunk cylinders and local grounds run in
+each keyframe's images spooled to disk and, every trunks.detect_every_m, handed to the trunk detector on a
+thread of its own; when the side ends (the side topic changes or says `end`) loop
+detection, bundle adjustment, TSDF fusion, trunk cylinders and local grounds run in
 a child process (ros/finisher.py: in a thread they held the GIL for seconds and camera frames were lost)
 while the next side is already being tracked.
 
@@ -349,7 +350,7 @@ class RGBDOdometryNode(Node):
             self.get_logger().info(f"{side} side ended after {session.frames} frames: bundle adjustment, fusion, "
                                    "trunks")
             try:
-                sm = finish_in_child(session, Timings(), session.detect)
+                sm = finish_in_child(session, Timings())
             except Exception as err:  # noqa: BLE001 - reported and counted; the node goes on with the next side
                 self._error(f"{side} side: no side map: {err}" if isinstance(err, OrchardMappingError)
                             else f"{side} side: no side map: {type(err).__name__}: {err}")
