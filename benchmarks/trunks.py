@@ -64,7 +64,7 @@ def simulate_case(scenario: str, trees: int, rate: float, seed: int, sim_dir: Pa
 
 def run_once(sim_dir: Path, out: Path, source: str) -> tuple[dict[str, float], float]:
     """(the run's stages, s; the wall-clock seconds of the whole run, writing included). The detector runs
-    beside fusion, so the stages can add up to more than the run took."""
+    beside the front end, so the stages can add up to more than the run took."""
     over: dict[str, Any] = {"trunks": {"source": source}}
     if source == "masks":
         over["trunks"]["masks_dir"] = str(sim_dir / "masks")

@@ -198,17 +198,17 @@ class SideSession:
     """One side's reconstruction fed a frame at a time: `add` runs the front end on each frame as it comes
     (from a bag, or from the camera topics in the live odometry node) and hands keyframes to the trunk
     detector's thread, `finish` does the rest once the side is over (loop detection, pose graph, bundle
-    adjustment, TSDF fusion, trunk cylinders and local grounds). `orchard-map run` and the node graph go through this same class, so the
-    same frames give the same side map."""
+    adjustment, TSDF fusion, trunk cylinders and local grounds). `orchard-map run` and the node graph go
+    through this same class, so the same frames give the same side map."""
 
     def __init__(self, side: str, intrinsics, cfg: OrchardConfig, images: KeyframeImages, bag: str = "",
                  detect: Detect | None = None) -> None:
         self.side, self.intrinsics, self.cfg, self.images, self.bag = side, intrinsics, cfg, images, bag
-        self.detect = detect  # None: the configured detector in this process (trunk_detector())
         self.fe = _new_front_end(intrinsics, cfg)
         self.frames = 0
         self.seconds = 0.0  # s spent in the front end
-        # trunk detection on a thread beside the front end, as keyframes are made
+        # trunk detection on a thread beside the front end, as keyframes are made; detect: None for the
+        # configured detector in this process (trunk_detector())
         self.early = (EarlyDetections(cfg, side, detect)
                       if cfg.trunks.source != "off" and cfg.input.mode == "rgbd" else None)
 
@@ -314,8 +314,9 @@ def finish_side(job: SideHandover, timings: Timings) -> SideMap:
     stamps = np.array([k.stamp for k in fe.keyframes])
     if cfg.input.mode == "rgbd":
         t0 = time.perf_counter()
-        views = TrunkViews(cfg, stamps, ba.poses, intr, job.detections, [k.frame_index for k in fe.keyframes])
-        fused = fuse_keyframes(job.images, [k.frame_index for k in fe.keyframes], ba.poses, intr, cfg, views)
+        frame_index = [k.frame_index for k in fe.keyframes]
+        views = TrunkViews(cfg, stamps, ba.poses, intr, job.detections, frame_index)
+        fused = fuse_keyframes(job.images, frame_index, ba.poses, intr, cfg, views)
         points, colors = fused.points, fused.colors
         timings.add(f"fusion_{side}", time.perf_counter() - t0 - views.post_seconds)
         # the detector ran beside the front end: its time overlaps the front end's stage
@@ -472,8 +473,8 @@ class EarlyDetections:
         self.seconds += time.perf_counter() - t0
         if found is None:
             return None
-        return [replace(d, mask=ImagePatch.crop(np.asarray(d.mask, bool), mask_bounds(np.asarray(d.mask, bool))))
-                for d in found]
+        masks = [np.asarray(d.mask, bool) for d in found]
+        return [replace(d, mask=ImagePatch.crop(m, mask_bounds(m))) for d, m in zip(found, masks)]
 
     def results(self) -> dict[int, list | None]:
         """Frame index -> detections (None: the detector did not answer), once all are in; the thread is let go."""
@@ -485,8 +486,8 @@ class EarlyDetections:
 
 class TrunkViews:
     """Takes the detections made beside the front end (`EarlyDetections`) as fusion comes to their keyframes
-    (`select`), fits the posts they found, and has only the keyframes with a trunk detection cleaned (a third to a half of them on
-    the simulated rows: cleaning is most of fusion's time); then keeps what trunk modelling and the two-side
+    (`select`), fits the posts they found, and has only the keyframes with a trunk detection cleaned (a third
+    to a half of them on the simulated rows: cleaning is most of fusion's time); then keeps what trunk modelling and the two-side
     diameter need of each (`__call__`, with its cleaned depth): pose, detections, and depth and masks
     cropped around the detections (ImagePatch). Frames are dropped as they go: memory grows with the trunks
     seen, not with the row's frames."""

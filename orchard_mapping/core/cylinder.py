@@ -348,8 +348,6 @@ class _StackedViews:
     ray_origin: np.ndarray  # (B, 3) m odom: the camera centre of each silhouette-edge ray
     ray_dir: np.ndarray  # (B, 3) unit odom
     px_per_m: np.ndarray  # (B,) fx / the trunk depth beside the edge
-    fx: float
-    fy: float
 
     @staticmethod
     def of(data: list[_ViewData], intr: CameraIntrinsics) -> "_StackedViews":
@@ -365,18 +363,25 @@ class _StackedViews:
             ray_origin=np.repeat(np.array([Ti[:3, 3] for Ti in T]).reshape(-1, 3), b, axis=0),
             ray_dir=np.concatenate([d.rays @ Ti[:3, :3].T for d, Ti in zip(data, T)]) if data else np.zeros((0, 3)),
             px_per_m=(intr.fx / np.maximum(np.concatenate([d.edge_depth for d in data]), 1e-3)) if data
-            else np.zeros(0), fx=intr.fx, fy=intr.fy)
+            else np.zeros(0))
 
-    def residuals(self, cyl: Cylinder, intr: CameraIntrinsics) -> tuple[np.ndarray, np.ndarray]:
-        """(M, 2) px depth-pixel terms and (B,) px edge terms of `cyl` (odom), as `view_residuals` gives them
-        view by view (distances and the projection do not depend on the frame they are computed in)."""
+    def _surface(self, cyl: Cylinder) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+        """rel (M, 3) pixel points from the origin, along (M,) m along the axis, w (M, 3) unit radial
+        directions, dist (M,) m from the axis, S (M, 3) their surface points in each pixel's camera."""
         a, O, r = cyl.axis, cyl.origin, cyl.radius
         rel = self.X - O
         along = rel @ a
         radial = rel - along[:, None] * a
         dist = np.maximum(np.linalg.norm(radial, axis=1), 1e-9)
-        S = O + along[:, None] * a + (r / dist)[:, None] * radial  # (M, 3) odom surface points
-        S = np.einsum("mij,mj->mi", self.R_cam_odom, S) + self.t_cam_odom  # (M, 3) in each pixel's camera
+        w = radial / dist[:, None]
+        S = np.einsum("mij,mj->mi", self.R_cam_odom, O + along[:, None] * a + r * w) + self.t_cam_odom
+        return rel, along, w, dist, S
+
+    def residuals(self, cyl: Cylinder, intr: CameraIntrinsics) -> tuple[np.ndarray, np.ndarray]:
+        """(M, 2) px depth-pixel terms and (B,) px edge terms of `cyl` (odom), as `view_residuals` gives them
+        view by view (distances and the projection do not depend on the frame they are computed in)."""
+        a, O, r = cyl.axis, cyl.origin, cyl.radius
+        S = self._surface(cyl)[4]
         z = np.maximum(S[:, 2], 1e-3)
         res_px = self.uv - np.stack([intr.fx * S[:, 0] / z + intr.cx, intr.fy * S[:, 1] / z + intr.cy], axis=1)
         c = np.cross(self.ray_dir, a)  # (B, 3)
@@ -384,18 +389,13 @@ class _StackedViews:
         d_line = np.abs(np.einsum("bj,bj->b", c, self.ray_origin - O)) / cn  # ray line to axis line
         return res_px, (d_line - r) * self.px_per_m
 
-    def jacobian(self, cyl: Cylinder, axis_steps: tuple[np.ndarray, np.ndarray], shift_steps: tuple[np.ndarray, np.ndarray]
-                 ) -> tuple[np.ndarray, np.ndarray]:
+    def jacobian(self, cyl: Cylinder, intr: CameraIntrinsics, axis_steps: tuple[np.ndarray, np.ndarray],
+                 shift_steps: tuple[np.ndarray, np.ndarray]) -> tuple[np.ndarray, np.ndarray]:
         """Derivatives of `residuals` ((M, 2, 5) and (B, 5)) with respect to: the axis moved by the two
         axis_steps (d axis / d parameter, (3,) each), the origin moved along the two shift_steps (3,), the
         radius. Closed form: by finite differences the 2D fits spent half their time on them."""
         a, O, r = cyl.axis, cyl.origin, cyl.radius
-        rel = self.X - O
-        along = rel @ a
-        radial = rel - along[:, None] * a
-        dist = np.maximum(np.linalg.norm(radial, axis=1), 1e-9)
-        w = radial / dist[:, None]  # (M, 3) unit radial
-        Y = np.einsum("mij,mj->mi", self.R_cam_odom, O + along[:, None] * a + r * w) + self.t_cam_odom
+        rel, along, w, dist, Y = self._surface(cyl)
         z = np.maximum(Y[:, 2], 1e-3)
         # d radial per parameter (M, 3, 4): tilting the axis by g, moving the origin by e
         dR = np.stack([-(rel @ g)[:, None] * a - along[:, None] * g for g in axis_steps]
@@ -405,8 +405,8 @@ class _StackedViews:
         dS = -dR + k * (dR - np.einsum("mi,mip->mp", w, dR)[:, None, :] * w[:, :, None])
         dS = np.concatenate([dS, w[:, :, None]], axis=2)  # (M, 3, 5)
         dY = np.einsum("mij,mjp->mip", self.R_cam_odom, dS)
-        J_px = -np.stack([self.fx * (dY[:, 0] * z[:, None] - Y[:, [0]] * dY[:, 2]),
-                          self.fy * (dY[:, 1] * z[:, None] - Y[:, [1]] * dY[:, 2])], axis=1) / (z**2)[:, None, None]
+        J_px = -np.stack([intr.fx * (dY[:, 0] * z[:, None] - Y[:, [0]] * dY[:, 2]),
+                          intr.fy * (dY[:, 1] * z[:, None] - Y[:, [1]] * dY[:, 2])], axis=1) / (z**2)[:, None, None]
         c = np.cross(self.ray_dir, a)  # (B, 3)
         cn = np.maximum(np.linalg.norm(c, axis=1), 1e-9)
         D = self.ray_origin - O
@@ -458,7 +458,7 @@ def _refine(parts: list[tuple[Cylinder, np.ndarray, list[_ViewData]]], intr: Cam
                       / sigma_3d_m]
             if views is not None:
                 steps = tuple((e - (cyl.axis @ e) * cyl.axis) / a_len for e in (e1, e2))
-                J_px, J_edge = views.jacobian(cyl, steps, (e1, e2))  # type: ignore[arg-type]
+                J_px, J_edge = views.jacobian(cyl, intr, steps, (e1, e2))  # type: ignore[arg-type]
                 J_part += [w2 * J_px.reshape(-1, 5), w2 * J_edge]
             J = np.concatenate(J_part)  # (rows of part i, 5): its own 4 parameters and the common radius
             full = np.zeros((len(J), len(x)))

@@ -98,8 +98,8 @@ class OnnxTrunkDetector:
         opts = ort.SessionOptions()
         opts.intra_op_num_threads = int(threads)
         opts.inter_op_num_threads = 1
-        # Its threads sleep between frames rather than spin: the detector runs beside fusion on the same cores
-        # (the pipeline), where spinning threads slowed both.
+        # Its threads sleep between frames rather than spin: the pipeline runs the detector on a thread beside
+        # the front end, on the same cores (beside fusion, spinning threads had slowed both).
         opts.add_session_config_entry("session.intra_op.allow_spinning", "0")
         opts.log_severity_level = 3  # errors only: torchvision exports warn about every variable-size output
         try:
