@@ -289,6 +289,8 @@ def eval_detector(
     model: Path = typer.Option(..., help="ONNX model following docs/detector.md."),
     data: list[Path] = typer.Option(..., help="COCO folders or simulator outputs (repeat the option)."),
     every: int = typer.Option(5, help="Simulator outputs: every n-th masked frame."),
+    count_ignored: bool = typer.Option(False, help="Score regions to ignore (COCO iscrowd: trunk pixels "
+                                       "scattered between leaves) as instances that must be found."),
     as_json: bool = typer.Option(False, "--json"),
 ) -> None:
     """Mask AP, AP50, AP75 (pycocotools COCOeval) and ms per image of a detector on annotated frames."""
@@ -300,13 +302,14 @@ def eval_detector(
 
     try:
         with tempfile.TemporaryDirectory() as tmp:
-            scores = evaluate_detector(model, _coco_folders(data, Path(tmp), every))
+            scores = evaluate_detector(model, _coco_folders(data, Path(tmp), every), ignore_crowd=not count_ignored)
     except OrchardMappingError as err:
         raise _fail(err) from err
     if as_json:
         typer.echo(json.dumps(dataclasses.asdict(scores), indent=1))
     else:
-        console.print(f"{scores.images} images, {scores.instances} instances: mask AP {scores.ap:.3f}, "
+        console.print(f"{scores.images} images, {scores.instances} instances ({scores.ignored} regions ignored): "
+                      f"mask AP {scores.ap:.3f}, "
                       f"AP50 {scores.ap50:.3f}, AP75 {scores.ap75:.3f} (trunk {scores.ap_trunk:.3f}, post "
                       f"{scores.ap_post:.3f}); {scores.ms_per_image:.0f} ms per image")
         console.print(f"AP50 trunk {scores.ap50_trunk:.3f}, post {scores.ap50_post:.3f}, either class "

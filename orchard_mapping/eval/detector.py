@@ -20,7 +20,7 @@ __all__ = ["DetectorScores", "evaluate_detector"]
 @dataclass(frozen=True)
 class DetectorScores:
     images: int
-    instances: int
+    instances: int  # annotated trunks and posts (not counting regions to ignore, COCO iscrowd)
     ap: float  # mask AP over IoU 0.50:0.95 (COCO)
     ap50: float
     ap75: float
@@ -37,8 +37,12 @@ class DetectorScores:
     # AP50 with the class ignored: a trunk found but called a post counts. Against ap50: what the
     # confusion of the two classes costs.
     ap50_any_class: float
+    ignored: int = 0  # regions to ignore (iscrowd 1): scattered trunk pixels seen through leaves, io/coco.py
 
-def evaluate_detector(model: str | Path, data: list[Path], threads: int = 2) -> DetectorScores:
+def evaluate_detector(model: str | Path, data: list[Path], threads: int = 2, *,
+                      ignore_crowd: bool = True) -> DetectorScores:
+    """Scores of `model` on the COCO folders `data`. `ignore_crowd=False` scores regions to ignore (iscrowd)
+    as instances that must be found, as COCO folders exported before the flag existed did."""
     from pycocotools import mask as mask_util
     from pycocotools.coco import COCO
 
@@ -48,10 +52,10 @@ def evaluate_detector(model: str | Path, data: list[Path], threads: int = 2) -> 
         for im in load_coco(folder):
             img_id = len(images) + 1
             images.append({"id": img_id, "width": im.width, "height": im.height, "file_name": str(im.path)})
-            for c, m in zip(im.classes, im.masks):
+            for c, m, crowd in zip(im.classes, im.masks, im.crowd):
                 rle = mask_rle(m)
                 anns.append({"id": len(anns) + 1, "image_id": img_id, "category_id": int(c), "segmentation": rle,
-                             "area": float(m.sum()), "bbox": list(mask_util.toBbox(rle)), "iscrowd": 0})
+                             "area": float(m.sum()), "bbox": list(mask_util.toBbox(rle)), "iscrowd": int(crowd and ignore_crowd)})
             rgb = cv2.cvtColor(cv2.imread(str(im.path), cv2.IMREAD_COLOR), cv2.COLOR_BGR2RGB)
             t0 = time.perf_counter()
             found = det.detect(rgb, where=str(im.path))
@@ -76,11 +80,12 @@ def evaluate_detector(model: str | Path, data: list[Path], threads: int = 2) -> 
         return float(p.mean()) if p.size else -1.0
 
     at50 = slice(0, 1)  # iouThrs[0] == 0.5
-    return DetectorScores(len(images), len(anns), float(ev.stats[0]), float(ev.stats[1]), float(ev.stats[2]),
+    ignored = sum(a["iscrowd"] for a in anns)
+    return DetectorScores(len(images), len(anns) - ignored, float(ev.stats[0]), float(ev.stats[1]), float(ev.stats[2]),
                           class_ap(0), class_ap(1), float(np.median(times)) * 1000 if times else float("nan"),
                           ap50_trunk=class_ap(0, at50), ap50_post=class_ap(1, at50), ap_small=float(ev.stats[3]),
                           ap_medium=float(ev.stats[4]), ap_large=float(ev.stats[5]),
-                          ap50_any_class=float(agnostic.stats[1]))
+                          ap50_any_class=float(agnostic.stats[1]), ignored=ignored)
 
 
 def _coco_eval(gt, dt, use_categories: bool):

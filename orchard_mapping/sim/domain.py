@@ -67,6 +67,9 @@ def random_domain(rng: np.random.Generator) -> dict[str, Any]:
         "trunk.diameter_min_m": 0.03,
         "trunk.diameter_max_m": 0.15,
         "trunk.lean_deg_max": rng.uniform(0, 10),
+        # real trunks are oval by a few per cent and their bark is bumpy (docs/merge.md)
+        "trunk.ellipticity": [0.0, rng.uniform(0.0, 0.12)],
+        "trunk.bark_roughness_m": rng.uniform(0.0, 0.002),
         "path.low_height_m": rng.uniform(0.4, 0.9),
         "path.distance_m": rng.uniform(0.9, 1.8),
         "path.roll_deg": rng.uniform(-10, 10),

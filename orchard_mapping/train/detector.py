@@ -108,14 +108,15 @@ def _target(item: CocoImage, rng: random.Random):
     import torch
 
     img = cv2.cvtColor(cv2.imread(str(item.path), cv2.IMREAD_COLOR), cv2.COLOR_BGR2RGB)
-    masks = item.masks
+    keep = ~item.crowd  # regions to ignore are not instances (torchvision has no ignore label)
+    masks, classes = item.masks[keep], item.classes[keep]
     img, masks = _augment(img, masks, rng)
     boxes = []
     for m in masks:
         v, u = np.nonzero(m)
         boxes.append([u.min(), v.min(), u.max() + 1, v.max() + 1])
     t = {"boxes": torch.tensor(np.asarray(boxes, np.float32).reshape(-1, 4)),
-         "labels": torch.tensor(item.classes, dtype=torch.int64),
+         "labels": torch.tensor(classes, dtype=torch.int64),
          "masks": torch.tensor(masks.astype(np.uint8))}
     return torch.from_numpy(np.ascontiguousarray(img.transpose(2, 0, 1))).float() / 255.0, t
 
@@ -126,7 +127,7 @@ def train(data: list[Path], out: Path, s: TrainSettings, log=print) -> dict[str,
 
     torch.set_num_threads(s.threads)
     rng = random.Random(s.seed)
-    items = [im for d in data for im in load_coco(d) if len(im.classes)]
+    items = [im for d in data for im in load_coco(d) if (~im.crowd).any()]
     if not items:
         raise ValueError(f"no annotated trunk or post in {[str(d) for d in data]}")
     device = torch.device("cuda" if torch.cuda.is_available() else "cpu")
@@ -163,7 +164,7 @@ def train(data: list[Path], out: Path, s: TrainSettings, log=print) -> dict[str,
     seconds = time.perf_counter() - t0
     export_onnx(model.cpu().eval(), out, s)
     card = {"settings": asdict(s), "train_seconds": round(seconds, 1), "device": str(device),
-            "images": len(items), "instances": int(sum(len(i.classes) for i in items)),
+            "images": len(items), "instances": int(sum((~i.crowd).sum() for i in items)),
             "data": [str(d) for d in data], "final_loss": float(np.mean(losses[-100:]))}
     out.with_suffix(".json").write_text(json.dumps(card, indent=1))
     return card

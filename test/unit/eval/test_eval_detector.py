@@ -32,7 +32,7 @@ def _frame_mask(region: tuple[slice, slice], scale: int = SCALE) -> np.ndarray:
     return m
 
 
-def _coco_folder(tmp_path) -> str:
+def _coco_folder(tmp_path, hidden_crowd: int = 0) -> str:
     img = np.full((H * SCALE, W * SCALE, 3), 90, np.uint8)
     cv2.imwrite(str(tmp_path / "frame.png"), img)
     truth = [(CLASS_TRUNK, _frame_mask(TRUNK)), (CLASS_POST, _frame_mask(POST)),
@@ -40,7 +40,8 @@ def _coco_folder(tmp_path) -> str:
     anns = []
     for k, (c, m) in enumerate(truth):
         rle = mask_rle(m)
-        anns.append({"id": k + 1, "image_id": 1, "category_id": c, "iscrowd": 0, "area": int(m.sum()),
+        crowd = hidden_crowd if k == 2 else 0
+        anns.append({"id": k + 1, "image_id": 1, "category_id": c, "iscrowd": crowd, "area": int(m.sum()),
                      "segmentation": {"size": rle["size"], "counts": rle["counts"].decode("ascii")}})
     doc = {"images": [{"id": 1, "file_name": "frame.png", "width": W * SCALE, "height": H * SCALE}],
            "annotations": anns, "categories": [{"id": CLASS_TRUNK, "name": "trunk"}, {"id": CLASS_POST, "name": "post"}]}
@@ -78,3 +79,14 @@ def test_a_trunk_called_a_post_costs_the_trunk_not_the_class_blind_score(tmp_pat
     assert confused.ap50_post < right.ap50_post  # the trunk is a false post
     assert confused.ap50 < right.ap50 - 0.2
     assert confused.ap50_any_class == pytest.approx(right.ap50_any_class)
+
+
+def test_a_region_to_ignore_is_neither_missed_nor_scored_unless_asked(tmp_path, constant_detector):
+    data = _coco_folder(tmp_path, hidden_crowd=1)  # the hidden trunk's sliver marked iscrowd (COCO: ignore)
+    model = _detector(constant_detector, tmp_path / "m.onnx", CLASS_TRUNK)
+    s = evaluate_detector(model, [data])
+    assert (s.instances, s.ignored) == (2, 1)
+    assert s.ap_trunk == pytest.approx(1.0) and s.ap50 == pytest.approx(1.0)
+    counted = evaluate_detector(model, [data], ignore_crowd=False)  # as if every visible pixel had to be found
+    assert (counted.instances, counted.ignored) == (3, 0)
+    assert counted.ap_trunk == pytest.approx(51 / 101)
