@@ -262,8 +262,12 @@ def train_detector(
     every: int = typer.Option(5, help="Simulator outputs: every n-th masked frame."),
     seed: int = typer.Option(0),
     threads: int = typer.Option(2, help="CPU threads (a GPU is used when torch sees one)."),
+    init: Path | None = typer.Option(None, help="Weights (.pt written beside a trained model, e.g. "
+                                     "models/trunk_maskrcnn.pt) to fine-tune instead of training from scratch."),
+    lr_scale: float = typer.Option(0.25, help="With --init: peak learning rate as a fraction of 0.02."),
 ) -> None:
-    """Train the trunk/post Mask R-CNN from scratch and export it to ONNX (needs requirements-train.lock)."""
+    """Train the trunk/post Mask R-CNN (from scratch, or fine-tune --init) and export it to ONNX and .pt
+    (needs requirements-train.lock)."""
     try:
         import torch  # noqa: F401
         import torchvision  # noqa: F401
@@ -276,8 +280,9 @@ def train_detector(
 
     try:
         folders = _coco_folders(data, out.parent / ".coco_cache", every)
-        card = train(folders, out, TrainSettings(iterations=iterations, seed=seed, threads=threads),
-                     log=lambda m: err_console.print(m))
+        card = train(folders, out, TrainSettings(iterations=iterations, seed=seed, threads=threads,
+                                                 lr_init_scale=lr_scale),
+                     log=lambda m: err_console.print(m), init=init)
     except (OrchardMappingError, ValueError, FloatingPointError) as err:
         raise _fail(err) from err
     console.print(f"wrote {out}: {card['images']} images, {card['instances']} instances, "

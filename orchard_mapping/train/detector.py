@@ -46,6 +46,11 @@ class TrainSettings:
     representation: int = 256
     seed: int = 0
     threads: int = 2
+    # Proposals kept after the RPN's NMS and RoIs sampled per image while training (torchvision: 2000, 512).
+    # A frame holds a few trunks and posts; fewer RoIs make an iteration cheaper on a CPU.
+    rpn_post_nms_train: int = 600
+    box_batch_per_image: int = 256
+    lr_init_scale: float = 1.0  # fine-tuning from --init: the peak learning rate is lr times this
 
 
 def build_model(s: TrainSettings):
@@ -80,6 +85,7 @@ def build_model(s: TrainSettings):
         box_predictor=FastRCNNPredictor(s.representation, 3),  # background, trunk, post
         mask_head=MaskRCNNHeads(c, [c, c], 1), mask_predictor=MaskRCNNPredictor(c, c, 3),
         box_detections_per_img=20, rpn_pre_nms_top_n_test=300, rpn_post_nms_top_n_test=100,
+        rpn_post_nms_top_n_train=s.rpn_post_nms_train, box_batch_size_per_image=s.box_batch_per_image,
     )
     torch.manual_seed(s.seed)
     return model
@@ -121,8 +127,35 @@ def _target(item: CocoImage, rng: random.Random):
     return torch.from_numpy(np.ascontiguousarray(img.transpose(2, 0, 1))).float() / 255.0, t
 
 
-def train(data: list[Path], out: Path, s: TrainSettings, log=print) -> dict[str, Any]:
-    """Train on COCO folders (`data`), export ONNX to `out`; returns what the model card reports."""
+def save_checkpoint(model, path: Path) -> Path:
+    """The weights as a half-precision state dict (half the size of float32; enough to fine-tune from)."""
+    import torch
+
+    tmp = path.with_name(f".{path.name}.partial")
+    torch.save({k: v.half() if v.is_floating_point() else v for k, v in model.state_dict().items()}, tmp)
+    tmp.replace(path)
+    return path
+
+
+def load_checkpoint(model, path: Path) -> None:
+    import torch
+
+    try:
+        state = torch.load(path, map_location="cpu", weights_only=True)
+    except (OSError, RuntimeError, ValueError) as err:
+        raise ValueError(f"checkpoint {path}: not readable ({err})") from err
+    own = model.state_dict()
+    wrong = [k for k in own if k not in state or state[k].shape != own[k].shape]
+    if wrong:
+        raise ValueError(f"checkpoint {path}: does not fit the model built from these settings "
+                         f"({len(wrong)} tensors missing or of another shape, first {wrong[0]})")
+    model.load_state_dict({k: v.to(own[k].dtype) for k, v in state.items()})
+
+
+def train(data: list[Path], out: Path, s: TrainSettings, log=print, init: Path | None = None) -> dict[str, Any]:
+    """Train on COCO folders (`data`), export ONNX to `out` and the weights to `out` with suffix .pt;
+    returns what the model card reports. `init`: a checkpoint to start from (fine-tuning) instead of
+    random initialisation."""
     import torch
 
     torch.set_num_threads(s.threads)
@@ -131,14 +164,19 @@ def train(data: list[Path], out: Path, s: TrainSettings, log=print) -> dict[str,
     if not items:
         raise ValueError(f"no annotated trunk or post in {[str(d) for d in data]}")
     device = torch.device("cuda" if torch.cuda.is_available() else "cpu")
-    model = build_model(s).to(device)
+    model = build_model(s)
+    if init is not None:
+        load_checkpoint(model, init)
+    model = model.to(device)
     params = [p for p in model.parameters() if p.requires_grad]
     opt = torch.optim.SGD(params, lr=s.lr, momentum=0.9, weight_decay=s.weight_decay)
 
+    peak = s.lr * (s.lr_init_scale if init is not None else 1.0)
+
     def lr_at(it: int) -> float:
         if it < s.warmup:
-            return s.lr * (0.001 + 0.999 * it / s.warmup)
-        return 0.5 * s.lr * (1 + math.cos(math.pi * (it - s.warmup) / max(1, s.iterations - s.warmup)))
+            return peak * (0.001 + 0.999 * it / s.warmup)
+        return 0.5 * peak * (1 + math.cos(math.pi * (it - s.warmup) / max(1, s.iterations - s.warmup)))
 
     model.train()
     t0 = time.perf_counter()
@@ -162,8 +200,11 @@ def train(data: list[Path], out: Path, s: TrainSettings, log=print) -> dict[str,
             log(f"iteration {it + 1}/{s.iterations}: loss {np.mean(losses[-50:]):.3f} "
                 f"({time.perf_counter() - t0:.0f} s)")
     seconds = time.perf_counter() - t0
-    export_onnx(model.cpu().eval(), out, s)
+    out.parent.mkdir(parents=True, exist_ok=True)
+    save_checkpoint(model.cpu(), out.with_suffix(".pt"))
+    export_onnx(model.eval(), out, s)
     card = {"settings": asdict(s), "train_seconds": round(seconds, 1), "device": str(device),
+            "init": str(init) if init is not None else None,
             "images": len(items), "instances": int(sum((~i.crowd).sum() for i in items)),
             "data": [str(d) for d in data], "final_loss": float(np.mean(losses[-100:]))}
     out.with_suffix(".json").write_text(json.dumps(card, indent=1))
