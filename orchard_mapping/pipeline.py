@@ -487,10 +487,10 @@ class EarlyDetections:
 class TrunkViews:
     """Takes the detections made beside the front end (`EarlyDetections`) as fusion comes to their keyframes
     (`select`), fits the posts they found, and has only the keyframes with a trunk detection cleaned (a third
-    to a half of them on the simulated rows: cleaning is most of fusion's time); then keeps what trunk modelling and the two-side
-    diameter need of each (`__call__`, with its cleaned depth): pose, detections, and depth and masks
-    cropped around the detections (ImagePatch). Frames are dropped as they go: memory grows with the trunks
-    seen, not with the row's frames."""
+    to a half of them on the simulated rows: cleaning is most of fusion's time); then keeps what trunk
+    modelling and the two-side diameter need of each (`__call__`, with its cleaned depth): pose, detections,
+    and depth and masks cropped around the detections (ImagePatch). Frames are dropped as they go: memory
+    grows with the trunks seen, not with the row's frames."""
 
     def __init__(self, cfg: OrchardConfig, stamps: np.ndarray, poses: np.ndarray, intr: CameraIntrinsics,
                  detections: dict[int, list | None], frame_index: list[int]) -> None:

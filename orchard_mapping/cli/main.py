@@ -281,7 +281,7 @@ def train_detector(
     try:
         folders = _coco_folders(data, out.parent / ".coco_cache", every)
         card = train(folders, out, TrainSettings(iterations=iterations, seed=seed, threads=threads,
-                                                 lr_init_scale=lr_scale),
+                                                 lr_scale=lr_scale if init is not None else 1.0),
                      log=lambda m: err_console.print(m), init=init)
     except (OrchardMappingError, ValueError, FloatingPointError) as err:
         raise _fail(err) from err

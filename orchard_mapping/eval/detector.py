@@ -55,7 +55,8 @@ def evaluate_detector(model: str | Path, data: list[Path], threads: int = 2, *,
             for c, m, crowd in zip(im.classes, im.masks, im.crowd):
                 rle = mask_rle(m)
                 anns.append({"id": len(anns) + 1, "image_id": img_id, "category_id": int(c), "segmentation": rle,
-                             "area": float(m.sum()), "bbox": list(mask_util.toBbox(rle)), "iscrowd": int(crowd and ignore_crowd)})
+                             "area": float(m.sum()), "bbox": list(mask_util.toBbox(rle)),
+                             "iscrowd": int(crowd and ignore_crowd)})
             rgb = cv2.cvtColor(cv2.imread(str(im.path), cv2.IMREAD_COLOR), cv2.COLOR_BGR2RGB)
             t0 = time.perf_counter()
             found = det.detect(rgb, where=str(im.path))

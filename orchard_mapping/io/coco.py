@@ -57,7 +57,7 @@ def recognisable(mask: np.ndarray) -> bool:
     if int(solid.sum()) < MIN_SOLID_PIXELS:
         return False
     n, _, stats, _ = cv2.connectedComponentsWithStats(solid, connectivity=8)
-    return bool(n > 1 and stats[1:, cv2.CC_STAT_AREA].max() >= MIN_SOLID_PIXELS)
+    return bool(stats[1:, cv2.CC_STAT_AREA].max() >= MIN_SOLID_PIXELS)  # n > 1: solid has pixels
 
 
 def mask_rle(mask: np.ndarray) -> dict:

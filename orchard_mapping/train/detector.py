@@ -50,7 +50,7 @@ class TrainSettings:
     # A frame holds a few trunks and posts; fewer RoIs make an iteration cheaper on a CPU.
     rpn_post_nms_train: int = 600
     box_batch_per_image: int = 256
-    lr_init_scale: float = 1.0  # fine-tuning from --init: the peak learning rate is lr times this
+    lr_scale: float = 1.0  # the peak learning rate is lr times this (below 1 to fine-tune from --init)
 
 
 def build_model(s: TrainSettings):
@@ -171,7 +171,7 @@ def train(data: list[Path], out: Path, s: TrainSettings, log=print, init: Path |
     params = [p for p in model.parameters() if p.requires_grad]
     opt = torch.optim.SGD(params, lr=s.lr, momentum=0.9, weight_decay=s.weight_decay)
 
-    peak = s.lr * (s.lr_init_scale if init is not None else 1.0)
+    peak = s.lr * s.lr_scale
 
     def lr_at(it: int) -> float:
         if it < s.warmup:
