@@ -272,7 +272,7 @@ DISPARITY_HINT_RATIO = 3.0
 
 def finish_side(job: SideHandover, timings: Timings) -> SideMap:
     """Loop detection, pose graph, bundle adjustment, TSDF fusion (cleaning the keyframes with a trunk
-    detection), trunk cylinders and local grounds: the side map."""
+    detection, with trunks.view_depth "cleaned"), trunk cylinders and local grounds: the side map."""
     cfg, side, intr = job.cfg, job.side, job.intrinsics
     timings.add(f"front_end_{side}", job.seconds)
     for event in job.events:
@@ -486,11 +486,12 @@ class EarlyDetections:
 
 class TrunkViews:
     """Takes the detections made beside the front end (`EarlyDetections`) as fusion comes to their keyframes
-    (`select`), fits the posts they found, and has only the keyframes with a trunk detection cleaned (a third
-    to a half of them on the simulated rows: cleaning is most of fusion's time); then keeps what trunk
-    modelling and the two-side diameter need of each (`__call__`, with its cleaned depth): pose, detections,
-    and depth and masks cropped around the detections (ImagePatch). Frames are dropped as they go: memory
-    grows with the trunks seen, not with the row's frames."""
+    (`select`), fits the posts they found, and keeps what trunk modelling and the two-side diameter need of
+    each keyframe with a trunk detection (`__call__`): pose, detections, and depth and masks cropped around
+    the detections (ImagePatch). The depth is the raw one (trunks.view_depth "raw", the default), or the
+    cleaned one ("cleaned"): then fusion cleans only these keyframes (a third to a half of them on the
+    simulated rows; cleaning was most of fusion's time). Frames are dropped as they go: memory grows with
+    the trunks seen, not with the row's frames."""
 
     def __init__(self, cfg: OrchardConfig, stamps: np.ndarray, poses: np.ndarray, intr: CameraIntrinsics,
                  detections: dict[int, list | None], frame_index: list[int]) -> None:
@@ -533,10 +534,15 @@ class TrunkViews:
         rect = (int(np.floor(boxes[:, 1].min())) - m, int(np.floor(boxes[:, 0].min())) - m,
                 int(np.ceil(boxes[:, 3].max())) + m, int(np.ceil(boxes[:, 2].max())) + m)
         self._detections[k] = (dets, rect)
+        if self.cfg.trunks.view_depth == "raw" and depth is not None:
+            # the view reads the raw depth: kept now, and nothing is cleaned (trunks.view_depth)
+            self(k, np.where(depth <= self.cfg.fusion.depth_max_m, depth, np.float32(0.0)), None)
+            return False
         return rect
 
     def __call__(self, k: int, depth: np.ndarray, color: np.ndarray | None) -> None:
-        """Keep what trunk modelling needs of keyframe k, cleaned (called by fusion after `select` chose it)."""
+        """Keep what trunk modelling needs of keyframe k (called by `select` with its raw depth, or by fusion with
+        its cleaned depth after `select` chose it)."""
         dets, rect = self._detections.pop(k)
         dets = [replace(d, mask=ImagePatch.crop(np.asarray(d.mask, bool), rect)) for d in dets]
         self.views.append(TrunkView(k, float(self.stamps[k]), self.poses[k], ImagePatch.crop(depth, rect), dets))
@@ -545,7 +551,8 @@ class TrunkViews:
 def fuse_keyframes(images: KeyframeImages, frame_index: list[int], poses: np.ndarray, intr, cfg: OrchardConfig,
                    views: TrunkViews) -> FusionResult:
     """TSDF fusion of the keyframes' depth (frame_index[k] is keyframe k's frame) with their optimised poses
-    (k, 4, 4); the keyframes with a trunk detection are cleaned as fusion moves on and go to `views`."""
+    (k, 4, 4); the keyframes with a trunk detection go to `views` as fusion comes to them (cleaned as fusion moves
+    on, with trunks.view_depth "cleaned")."""
     pose_of = dict(zip(frame_index, poses))
 
     def frames() -> Iterator[tuple[np.ndarray, np.ndarray, np.ndarray]]:

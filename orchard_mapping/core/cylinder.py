@@ -81,11 +81,11 @@ class Cylinder:
 
 @dataclass(frozen=True)
 class CylinderView:
-    """One camera's view of a trunk segment: the detection mask and the cleaned depth of that frame."""
+    """One camera's view of a trunk segment: the detection mask and the depth of that frame (raw or cleaned)."""
 
     T_odom_cam: np.ndarray  # (4, 4) camera pose
     mask: np.ndarray | ImagePatch  # (H, W) bool, the trunk's instance mask
-    depth: np.ndarray | ImagePatch  # (H, W) float32 m, cleaned depth, 0 = none
+    depth: np.ndarray | ImagePatch  # (H, W) float32 m, 0 = none
 
 
 @dataclass(frozen=True)

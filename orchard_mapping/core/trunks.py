@@ -1,7 +1,7 @@
 """Trunk landmarks of one side (paper: "Trunk Cylinder Modeling", "Local Ground Plane").
 
-From one side's reconstruction (keyframe poses, fused cloud, cleaned depth of
-keyframes spaced along the path) and the trunk detections of those keyframes:
+From one side's reconstruction (keyframe poses, fused cloud, depth of
+keyframes spaced along the path: raw, or cleaned by fusion) and the trunk detections of those keyframes:
 
 1. Association: every detected trunk instance is placed in the side's frame
    by the median of its depth pixels; instances whose places lie within
@@ -98,6 +98,13 @@ class TrunkParams:
     # standard and slope_weeds rows with the shipped model, 6 px took the 2D fit's diameter MAE from
     # 3.24/1.92/2.46/1.63 to 1.42/1.00/0.76/1.08 mm (front/back sides); on exact masks it changes < 0.1 mm.
     edge_snap_px: int = 6
+    # Depth the 2D terms (and the merge's cone axis) read in each detector frame: "raw" (the sensor's, up to
+    # fusion.depth_max_m) or "cleaned" (the paper's: checked against the fused surface ray cast into the frame,
+    # floating pixels removed). Measured with the shipped detector on 10-tree rows (standard seed 0,
+    # slope_weeds seeds 0-2; benchmarks/trunks.py, docs/performance.md): diameter MAE over the 8 sides 1.22
+    # (raw) vs 1.23 mm (cleaned), every side within 0.4 mm of the other; the Huber loss and the edge snap
+    # already set aside what the cleaning removes. Cleaning was ~4 s of fusion per side.
+    view_depth: str = "raw"
 
     def __post_init__(self) -> None:
         if self.source not in ("model", "masks", "off"):
@@ -107,6 +114,8 @@ class TrunkParams:
         for name in ("score_threshold", "mask_threshold", "max_mask_overlap"):
             if not 0.0 <= getattr(self, name) <= 1.0:
                 raise TrunkError(f"trunks.{name} must be in [0, 1], got {getattr(self, name)!r}")
+        if self.view_depth not in ("raw", "cleaned"):
+            raise TrunkError(f"trunks.view_depth must be 'raw' or 'cleaned', got {self.view_depth!r}")
         if self.edge_snap_px < 0:
             raise TrunkError(f"trunks.edge_snap_px must be >= 0, got {self.edge_snap_px!r}")
         if self.input_width < 0 or self.input_height < 0 or self.threads < 1:
@@ -121,12 +130,12 @@ class TrunkParams:
 
 @dataclass(frozen=True)
 class TrunkView:
-    """A keyframe given to the detector: its pose, cleaned depth and trunk detections."""
+    """A keyframe given to the detector: its pose, depth (trunks.view_depth) and trunk detections."""
 
     keyframe: int  # keyframe id
     stamp: float  # s
     T_odom_cam: np.ndarray  # (4, 4)
-    depth: np.ndarray | ImagePatch  # (H, W) float32 m, cleaned, 0 = none (a patch: only around the detections)
+    depth: np.ndarray | ImagePatch  # (H, W) float32 m, raw or cleaned, 0 = none (a patch: only around the detections)
     detections: list[Detection]
 
 
@@ -276,7 +285,7 @@ def _band_rows_mask(det_mask: np.ndarray, depth: np.ndarray, intr: CameraIntrins
                     axis: np.ndarray) -> np.ndarray:
     """The detection mask cut to its image rows whose trunk pixels lie in the band [h_lo, h_hi] m.
 
-    Whole rows are kept so that the mask's silhouette edges (whose pixels often have no cleaned depth)
+    Whole rows are kept so that the mask's silhouette edges (whose pixels often have no depth)
     stay in. Heights above the ground plane, or along the axis above axis_h0 without a ground.
     """
     P = _backproject(depth, det_mask, intr, T_odom_cam)
@@ -329,7 +338,7 @@ def build_trunk_landmarks(points: np.ndarray, poses: np.ndarray, views: list[Tru
     dets: list[tuple[TrunkView, Detection]] = []
     places = []
     det_points: list[np.ndarray] = []
-    view_points: list[np.ndarray] = []  # each detection's cleaned depth pixels in odom, thinned (the merge axis)
+    view_points: list[np.ndarray] = []  # each detection's depth pixels in odom, thinned (the merge axis)
     for v in views:
         for det in v.detections:
             if det.class_id != CLASS_TRUNK or int(det.mask.sum()) < params.min_mask_pixels:

@@ -59,3 +59,44 @@ def test_keyframes_detect_every_m_apart_reach_the_detector_in_order_and_come_bac
         assert np.array_equal(np.asarray(trunk.mask, bool), want)
         assert np.array_equal(np.asarray(post.mask, bool), want[::-1])
         assert (trunk.class_id, post.class_id) == (CLASS_TRUNK, CLASS_POST)
+
+
+def _views(view_depth: str):
+    from orchard_mapping.pipeline import TrunkViews
+
+    cfg = load_config(overrides={"trunks": {"view_depth": view_depth}, "fusion": {"depth_max_m": 3.0},
+                                 "semantic_ba": {"use_posts": False}})
+    mask = np.zeros((48, 64), bool)
+    mask[10:40, 28:34] = True
+    found = {7: [Detection.from_mask(mask, CLASS_TRUNK, 0.9)], 8: [Detection.from_mask(mask, CLASS_POST, 0.9)]}
+    poses = np.repeat(np.eye(4)[None], 3, axis=0)
+    return TrunkViews(cfg, np.array([0.0, 0.1, 0.2]), poses, INTR, found, [6, 7, 8])
+
+
+def test_trunk_views_keep_the_raw_depth_and_ask_for_no_cleaning_unless_told_to():
+    depth = np.full((48, 64), 1.2, np.float32)
+    depth[20, 30] = 4.0  # beyond fusion.depth_max_m: not fused, so not read either
+    raw = _views("raw")
+    assert raw.select(0, np.zeros((48, 64, 3), np.uint8), depth) is False  # no detection there
+    assert raw.select(2, np.zeros((48, 64, 3), np.uint8), depth) is False  # posts only
+    assert raw.select(1, np.zeros((48, 64, 3), np.uint8), depth) is False  # kept at once, nothing to clean
+    (view,) = raw.views
+    d = np.asarray(view.depth)
+    assert view.keyframe == 1 and d[20, 30] == 0.0 and d[21, 30] == np.float32(1.2)
+
+    cleaned = _views("cleaned")
+    region = cleaned.select(1, np.zeros((48, 64, 3), np.uint8), depth)
+    assert isinstance(region, tuple) and region[0] <= 10 and region[2] >= 40 and not cleaned.views
+    depth_clean = np.where(depth < 2, depth, 0).astype(np.float32)
+    cleaned(1, depth_clean, None)  # fusion hands the cleaned depth over
+    assert [v.keyframe for v in cleaned.views] == [1]
+    assert np.asarray(cleaned.views[0].depth)[21, 30] == np.float32(1.2)
+
+
+def test_an_unknown_view_depth_is_a_config_error():
+    import pytest
+
+    from orchard_mapping.errors import ConfigError
+
+    with pytest.raises(ConfigError, match="trunks.view_depth must be 'raw' or 'cleaned', got 'smoothed'"):
+        load_config(overrides={"trunks": {"view_depth": "smoothed"}})
