@@ -508,7 +508,8 @@ def fuse_side(frames: Iterable[tuple[np.ndarray, np.ndarray, np.ndarray]], intr:
       mode="local": as in the paper, a grid of the keyframe's `neighbours` nearest frames (by camera
                     centre) per keyframe: `neighbours` integrations per keyframe (keeps every frame).
     keyframes: positions in `frames` to clean (None = every frame); of these only those at least
-    cleaned_spacing_m (camera centres) after the previous cleaned one are cleaned (0 = all).
+    cleaned_spacing_m (camera centres) after the previous cleaned one are cleaned (0 = all; not applied
+    with a `select`, which is asked about every one of them).
     fused_spacing_m: frames nearer than this to the last integrated one are not integrated (0 = all).
     keep_color: also keep the colour image of every cleaned keyframe (for the trunk detector; ~1 MB each).
     on_cleaned: when given, each cleaned keyframe is handed to it (in order) instead of being kept in
@@ -612,8 +613,12 @@ def fuse_side(frames: Iterable[tuple[np.ndarray, np.ndarray, np.ndarray]], intr:
             last_retired[0] = here
         if mode == "local":
             poses.append(Tc)  # the nearest frames of each keyframe are chosen from all of them
-        if (key_set is None or i in key_set) and (
-                last_cleaned is None or np.linalg.norm(here - last_cleaned) >= cleaned_spacing_m):
+        # with a `select`, every keyframe is offered to it: it has its own spacing (the pipeline's detector frames,
+        # trunks.detect_every_m on by the front end's poses). Thinned here as well, by these poses, the two
+        # spacings fell out of step: on the back side of a simulated slope_weeds row no detector frame reached
+        # `select` over the first 5 m, and 4 of its 10 trunks were lost.
+        if (key_set is None or i in key_set) and (select is not None or last_cleaned is None
+                                                  or np.linalg.norm(here - last_cleaned) >= cleaned_spacing_m):
             last_cleaned = here
             chosen = True if select is None else select(i, np.asarray(color), d)
             if chosen is not False:

@@ -402,6 +402,22 @@ def test_a_region_is_cleaned_as_the_whole_frame_is(row):
     np.testing.assert_array_equal(part.points, whole.points)  # the cloud does not depend on the cleaning
 
 
+def test_select_is_asked_about_every_keyframe_whatever_the_cleaning_spacing(row):
+    """`select` keeps its own spacing (the pipeline's detector frames): fusion must not thin the keyframes it
+    offers, else the two spacings fall out of step and a detector frame is never offered (trunks were lost)."""
+    asked: list[int] = []
+
+    def select(k: int, color: np.ndarray, depth: np.ndarray) -> bool:
+        asked.append(k)
+        return k % 2 == 1  # every other keyframe, as a detector spaced otherwise would
+
+    res = fuse_side(row.frames(), row.intr, keyframes=row.keyframes, cleaned_spacing_m=10.0, select=select)
+    assert asked == row.keyframes
+    assert sorted(res.cleaned_depth) == [k for k in row.keyframes if k % 2 == 1]
+    thinned = fuse_side(row.frames(), row.intr, keyframes=row.keyframes, cleaned_spacing_m=10.0)
+    assert sorted(thinned.cleaned_depth) == row.keyframes[:1]  # without a select the spacing still applies
+
+
 def test_the_same_frames_give_the_same_cloud(row):
     """Open3D extracts surface points in parallel, in an order that changes from run to run; the cloud comes
     back sorted, so the trunks fitted to it (RANSAC draws points by index) do not change between runs."""
