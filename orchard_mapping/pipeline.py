@@ -38,7 +38,8 @@ from orchard_mapping.core.sides import UTurnSides
 from orchard_mapping.core.cylinder import Cylinder
 from orchard_mapping.core.trunks import TrunkLandmark, TrunkView, build_trunk_landmarks, ground_around_trunk
 from orchard_mapping.core.detection import CLASS_POST, CLASS_TRUNK
-from orchard_mapping.core.posts import PostObservation, build_post_landmarks, fit_post_view, post_shapes
+from orchard_mapping.core.posts import (PostObservation, build_post_landmarks, fit_post_view, post_shapes,
+                                       separate_trunks_from_posts)
 from orchard_mapping.core.types import CameraIntrinsics, ImagePatch, RGBDFrame, StampedTrajectory, mask_bounds
 from orchard_mapping.errors import AlignmentError, BagError, BagFormatError, MergeRefusedError
 from orchard_mapping.io.bags import RGBDSequence, read_rgbd
@@ -330,6 +331,10 @@ def finish_side(job: SideHandover, timings: Timings) -> SideMap:
             t0 = time.perf_counter()
             trunks = build_trunk_landmarks(points, ba.poses, views.views, intr, cfg.trunks, cfg.ground,
                                            np.random.default_rng(cfg.seed))
+            if posts:
+                trunks, posts, said = separate_trunks_from_posts(trunks, posts, ba.poses)
+                for line in said:
+                    log.warning("%s: %s", side, line)
             timings.add(f"trunks_{side}", time.perf_counter() - t0)
             if not trunks:
                 log.warning("%s: no trunk found (trunks.json lists none for this side)", side)

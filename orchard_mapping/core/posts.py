@@ -22,11 +22,11 @@ import numpy as np
 
 from orchard_mapping.core.cylinder import Cylinder, CylinderError, fit_cylinder, point_distance
 from orchard_mapping.core.odometry import backproject
-from orchard_mapping.core.trunks import _associate
+from orchard_mapping.core.trunks import TrunkLandmark, _associate
 from orchard_mapping.core.types import CameraIntrinsics
 
 __all__ = ["PostLandmark", "PostObservation", "build_post_landmarks", "fit_post_view", "pass_representatives", "post_shapes",
-           "passes", "refit_fixed_radius"]
+           "passes", "refit_fixed_radius", "separate_trunks_from_posts"]
 
 # px eroded off a post mask before its depth is used: raw depth mixes post and background at the edges
 # (flying pixels), and a learned mask's edge strays 2-3 px.
@@ -43,6 +43,9 @@ ASSOCIATE_RADIUS_M = 0.3  # m across up: posts stand metres apart, one post's pl
 MIN_OBSERVATIONS = 3
 REFIT_POINTS = 300  # inliers an observation keeps for the fixed-radius refit
 PASS_GAP_M = 0.5  # m of camera travel between two observations of a post that starts a new pass by it
+# m: a trunk landmark and a post landmark whose axes are closer than their two radii and this (the scatter of
+# the two places) cannot be two things standing side by side: they are one the detector called either.
+SAME_OBJECT_TOL_M = 0.03
 
 
 @dataclass(frozen=True)
@@ -246,3 +249,46 @@ def post_shapes(sides: list[tuple[list[PostLandmark], np.ndarray]], pair_radius_
                 shapes.append(PostShape(i, o.keyframe, trunk_frame(origin, o.axis_cam, -origin)))
         out.append(shapes)
     return out
+
+
+def separate_trunks_from_posts(trunks: list[TrunkLandmark], posts: list[PostLandmark], poses: np.ndarray
+                               ) -> tuple[list[TrunkLandmark], list[PostLandmark], list[str]]:
+    """One side's trunk and post landmarks without the objects that are in both.
+
+    The detector may call a post a trunk in some frames and a post in others (grey posts look like grey
+    trunks). A trunk and a post whose axes pass closer than their radii and SAME_OBJECT_TOL_M are one
+    object, and the frames that saw it decide what it is, a tie going to the post: a post must never be
+    taken for a trunk. The post's views from a raised sweep count: what shows as a post above the canopy
+    is one (the slope_weeds row of seed 1, front side: a post was a trunk in 8 level frames, a post in 1
+    level and 13 raised ones, and was reported as a 99 mm trunk). Kept trunks are numbered 0.. along the side again, posts
+    likewise. Returns (trunks, posts, one line per object given up). poses (K, 4, 4) T_odom_cam."""
+    axes = []  # (3,) unit odom per post: the mean of its views' axes
+    for p in posts:
+        a = np.sum([poses[o.keyframe][:3, :3] @ o.axis_cam for o in p.observations], axis=0)
+        axes.append(a / np.linalg.norm(a))
+    drop_trunks: set[int] = set()
+    drop_posts: set[int] = set()
+    said: list[str] = []
+    for t in trunks:
+        r_trunk = t.diameter_m / 2 if t.diameter_m is not None else None
+        for p, a in zip(posts, axes):
+            if p.id in drop_posts:
+                continue
+            # m, the trunk's foot to the post's axis line: the post's place is halfway up what its views saw
+            # (metres above the foot), where a trunk axis off by a degree or two would miss it by centimetres
+            rel = t.base - p.place
+            gap = float(np.linalg.norm(rel - (rel @ a) * a))
+            if gap > p.radius_m + (p.radius_m if r_trunk is None else r_trunk) + SAME_OBJECT_TOL_M:
+                continue
+            as_post, as_trunk = len(p.observations), len(t.observations)
+            if as_post >= as_trunk:
+                drop_trunks.add(t.id)
+                said.append(f"trunk {t.id} is post {p.id} ({gap * 1000:.0f} mm apart): a post in {as_post} frames, "
+                            f"a trunk in {as_trunk}; reported as a post")
+                break
+            drop_posts.add(p.id)
+            said.append(f"post {p.id} is trunk {t.id} ({gap * 1000:.0f} mm apart): a trunk in {as_trunk} frames, "
+                        f"a post in {as_post}; not used as a post")
+    kept_trunks = [replace(t, id=i) for i, t in enumerate(t for t in trunks if t.id not in drop_trunks)]
+    kept_posts = [replace(p, id=i) for i, p in enumerate(p for p in posts if p.id not in drop_posts)]
+    return kept_trunks, kept_posts, said

@@ -104,3 +104,44 @@ def test_two_passes_make_one_landmark_and_the_shapes_share_a_reference():
     origins = np.array([(odom[s.keyframe] @ s.T_cam_post)[:3, 3] for s in shapes])  # world
     assert np.linalg.norm(origins[0] - origins[1]) < 0.02  # one point of the axis, each view's own estimate
     assert np.all(np.linalg.norm(origins[:, :2] - POST_XY, axis=1) < 0.008)
+
+
+def _trunk_landmark(i: int, base_x: float, n_obs: int, diameter_m: float | None = 0.07):
+    from orchard_mapping.core.trunks import TrunkLandmark, TrunkObservation
+
+    up = np.array([0.0, -1.0, 0.0])  # odom = the level camera's optical frame: y down
+    obs = [TrunkObservation(k, 0.1 * k, None, None, 100) for k in range(n_obs)]  # type: ignore[arg-type]
+    return TrunkLandmark(id=i, axis=up, base=np.array([base_x, 0.6, 1.25]), length_m=0.7, ground=None, band=None,
+                         diameter_m=diameter_m, baseline_band=None, n_points=500, observations=obs)
+
+
+def _post_landmark(i: int, x: float, n_obs: int, tilt: float = 0.0):
+    from orchard_mapping.core.posts import PostLandmark, PostObservation
+
+    axis = np.array([tilt, -1.0, 0.0]) / np.hypot(tilt, 1.0)
+    obs = [PostObservation(k, axis, np.zeros(3), 0.05, 1.0, 500, np.zeros((0, 3), np.float32)) for k in range(n_obs)]
+    # the place is halfway up what the views saw: 1.5 m up the post's axis from its foot
+    return PostLandmark(i, np.array([x, 0.6, 1.25]) + 1.5 * axis, 0.05, obs)
+
+
+def test_separate_trunks_from_posts_by_the_frames_that_saw_the_object():
+    """A post the detector also called a trunk is a post; a tree it also called a post is a tree."""
+    from orchard_mapping.core.posts import separate_trunks_from_posts
+
+    poses = np.repeat(np.eye(4)[None], 20, axis=0)  # every view's camera frame is odom
+    trunks = [_trunk_landmark(0, 0.0, 8), _trunk_landmark(1, 0.95, 8), _trunk_landmark(2, 1.9, 9),
+              _trunk_landmark(3, 2.85, 8, diameter_m=None)]
+    posts = [_post_landmark(0, 0.96, 14, tilt=0.02),  # trunk 1's place: a post in more frames than a trunk
+             _post_landmark(1, 1.92, 3),  # trunk 2's place, a post in fewer frames: the tree
+             _post_landmark(2, 2.85 + 0.05 + 0.05 + 0.02, 8),  # beside trunk 3, radii apart and 2 cm: the same
+             _post_landmark(3, 4.3, 10)]  # nothing there: a post
+    kept, kept_posts, said = separate_trunks_from_posts(trunks, posts, poses)
+    assert [t.base[0] for t in kept] == [0.0, 1.9]  # trunk 1 was post 0; trunk 3 ties with post 2: a post
+    assert [t.id for t in kept] == [0, 1]  # numbered along the side again
+    feet = [p.place[0] - 1.5 * 0.02 / np.hypot(0.02, 1.0) * (p.place[0] < 1) for p in kept_posts]
+    assert feet == pytest.approx([0.96, 2.97, 4.3]) and [p.id for p in kept_posts] == [0, 1, 2]
+    assert len(said) == 3 and "trunk 1 is post 0" in said[0] and "post 1 is trunk 2" in said[1]
+    # farther apart than the two radii and the tolerance: two things, both kept
+    apart = [_post_landmark(0, 0.0 + 0.035 + 0.05 + 0.04, 20)]
+    kept, kept_posts, said = separate_trunks_from_posts(trunks[:1], apart, poses)
+    assert len(kept) == 1 and len(kept_posts) == 1 and not said
