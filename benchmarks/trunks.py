@@ -14,7 +14,8 @@ ONNX detector at trunks.model). Printed in one table per side:
 
 With --cost (standard only), the same row is also run with trunks.source=off, alternating the two
 configurations --repeat times, and the ratio of the runs' wall-clock times (with / without) is printed:
-the goal is <= 1.25.
+the goal is <= 1.25. The run without trunks has no merge (it needs trunks), so the ratio is also printed
+with the merge stage's time (it comes last, outputs included) taken off the run with trunks.
 
     python benchmarks/trunks.py [--scenarios standard slope_weeds] [--trees 10] [--rate 15]
         [--workdir /tmp/trunks_bench] [--reuse] [--source masks|model] [--cost --repeat 2] [--json out.json]
@@ -129,7 +130,8 @@ def main(argv: list[str] | None = None) -> int:
         case_dir = args.workdir / f"{sc}_{args.trees}trees_{args.rate:g}hz_seed{args.seed}"
         sim_dir, res_dir = case_dir / "sim", case_dir / "result"
         simulate_case(sc, args.trees, args.rate, args.seed, sim_dir, args.reuse)
-        cost: dict[str, list[float]] = {"with": [], "without": [], "with_stage_sum": [], "without_stage_sum": []}
+        cost: dict[str, list[float]] = {"with": [], "without": [], "with_stage_sum": [], "without_stage_sum": [],
+                                        "merge": []}
         if args.cost and sc == "standard":
             for _ in range(args.repeat):  # alternate, so that machine noise hits both alike
                 off, wall = run_once(sim_dir, case_dir / "result_off", "off")
@@ -138,6 +140,7 @@ def main(argv: list[str] | None = None) -> int:
                 stages, wall = run_once(sim_dir, res_dir, args.source)
                 cost["with"].append(wall)
                 cost["with_stage_sum"].append(sum(stages.values()))
+                cost["merge"].append(stages.get("merge", 0.0))
         else:
             stages, _ = run_once(sim_dir, res_dir, args.source)
         rep = evaluate_result(sim_dir / "ground_truth.json", res_dir).to_dict()
@@ -178,6 +181,12 @@ def main(argv: list[str] | None = None) -> int:
                           f"medians of {len(c['cost_s']['with'])} alternating runs): ratio {w / wo:.3f} (goal <= 1.25); "
                           f"stages added up: {statistics.median(c['cost_s']['with_stage_sum']):.1f} and "
                           f"{statistics.median(c['cost_s']['without_stage_sum']):.1f} s")
+            if c["cost_s"].get("merge"):
+                # the merge (and its outputs) ends the run: the run up to it is the trunk stage's own cost
+                wm = statistics.median(a - m for a, m in zip(c["cost_s"]["with"], c["cost_s"]["merge"]))
+                console.print(f"{c['scenario']}: without the two-side merge that trunks make possible (its "
+                              f"{statistics.median(c['cost_s']['merge']):.1f} s and outputs), with trunks {wm:.1f} s: "
+                              f"ratio {wm / wo:.3f}")
     if args.json:
         args.json.write_text(json.dumps(cases, indent=1))
         console.print(f"wrote {args.json}")

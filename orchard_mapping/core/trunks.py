@@ -264,8 +264,9 @@ _SLAB_MARGIN_M = 1.5
 # m above the ground: the merge axis is fitted above the trunk's foot
 FOOT_CLEARANCE_M = 0.10
 
-# depth pixels kept per trunk detection for the merge axis: a few thousand per frame, tens of frames per trunk
-_VIEW_POINTS_PER_DETECTION = 3000
+# depth pixels kept per trunk detection for the merge axis (of a few thousand in a frame; ~8 frames per trunk).
+# 1000 rather than 3000: the cone fits of a 10-tree side 1.15 -> 0.36 s (standard row, front side)
+_VIEW_POINTS_PER_DETECTION = 1000
 
 # px: what a band view keeps around its mask: the silhouette terms look 8 px outside a mask and move its
 # edges by up to edge_snap_px (core/cylinder.py); nothing else is read.
