@@ -260,8 +260,8 @@ def separate_trunks_from_posts(trunks: list[TrunkLandmark], posts: list[PostLand
     object, and the frames that saw it decide what it is, a tie going to the post: a post must never be
     taken for a trunk. The post's views from a raised sweep count: what shows as a post above the canopy
     is one (the slope_weeds row of seed 1, front side: a post was a trunk in 8 level frames, a post in 1
-    level and 13 raised ones, and was reported as a 99 mm trunk). Kept trunks are numbered 0.. along the side again, posts
-    likewise. Returns (trunks, posts, one line per object given up). poses (K, 4, 4) T_odom_cam."""
+    level and 13 raised ones, and was reported as a 99 mm trunk). Kept trunks are numbered 0.. along the side
+    again, posts likewise. Returns (trunks, posts, one line per object given up). poses (K, 4, 4) T_odom_cam."""
     axes = []  # (3,) unit odom per post: the mean of its views' axes
     for p in posts:
         a = np.sum([poses[o.keyframe][:3, :3] @ o.axis_cam for o in p.observations], axis=0)

@@ -30,7 +30,7 @@ class RowView:
 
 def write_row_png(path: Path, T_canon_map: np.ndarray, views: list[RowView], seed: int = 0) -> None:
     """Top view (X, Z) and front view (X, Y) of each RowView side by side; written atomically."""
-    # The Figure API without pyplot: no global backend or figure registry (the trait reporter node draws in a
+    # The Figure API without pyplot: no global backend or figure registry (the side merger node draws in a
     # process that lives on), and pyplot's import alone was ~0.5 s of the merge stage's ~5 s
     from matplotlib.figure import Figure
 
