@@ -60,6 +60,8 @@ class Timings:
     stages: dict[str, float] = field(default_factory=dict)  # s per stage
     frames: int = 0
     recording_duration_s: float = 0.0
+    # s, the run's wall clock (stages overlap: the detector's thread, the trunk worker); None until it is over
+    wall_s: float | None = None
 
     def add(self, stage: str, seconds: float) -> None:
         self.stages[stage] = self.stages.get(stage, 0.0) + seconds
@@ -237,8 +239,12 @@ class SideSession:
 
     def finish(self, timings: Timings) -> SideMap:
         """Everything after the front end; the side map. Lets go of the kept keyframe images."""
+        return self.finish_later(timings, None)()
+
+    def finish_later(self, timings: Timings, worker: "TrunkWorker | None") -> "PendingSide":
+        """`finish` with the trunk modelling handed to `worker` (None: done here); the side map once called."""
         try:
-            return finish_side(self.handover(), timings)
+            return finish_side_later(self.handover(), timings, worker)
         finally:
             self.images.close()
 
@@ -271,9 +277,10 @@ DISPARITY_SIGMA_PER_RESIDUAL_SD = 10.0
 DISPARITY_HINT_RATIO = 3.0
 
 
-def finish_side(job: SideHandover, timings: Timings) -> SideMap:
+def finish_side_geometry(job: SideHandover, timings: Timings) -> tuple[SideMap, "TrunkJob | None"]:
     """Loop detection, pose graph, bundle adjustment, TSDF fusion (cleaning the keyframes with a trunk
-    detection, with trunks.view_depth "cleaned"), trunk cylinders and local grounds: the side map."""
+    detection, with trunks.view_depth "cleaned"): the side map without its trunks and posts, and what modelling
+    them needs (None: nothing to model)."""
     cfg, side, intr = job.cfg, job.side, job.intrinsics
     timings.add(f"front_end_{side}", job.seconds)
     for event in job.events:
@@ -310,9 +317,8 @@ def finish_side(job: SideHandover, timings: Timings) -> SideMap:
                     cfg.ba.disparity_sigma, ba.disparity_residual_sd, DISPARITY_SIGMA_PER_RESIDUAL_SD, suggested)
     points = np.zeros((0, 3), np.float32)
     colors = np.zeros((0, 3), np.uint8)
-    trunks: list[TrunkLandmark] = []
-    posts: list = []
     stamps = np.array([k.stamp for k in fe.keyframes])
+    trunk_job: TrunkJob | None = None
     if cfg.input.mode == "rgbd":
         t0 = time.perf_counter()
         frame_index = [k.frame_index for k in fe.keyframes]
@@ -322,44 +328,159 @@ def finish_side(job: SideHandover, timings: Timings) -> SideMap:
         timings.add(f"fusion_{side}", time.perf_counter() - t0 - views.post_seconds)
         # the detector ran beside the front end: its time overlaps the front end's stage
         timings.add(f"trunk_detection_{side}", job.detection_seconds)
-        if views.posts:
-            t0 = time.perf_counter()
-            posts = build_post_landmarks(views.posts, ba.poses)
-            timings.add(f"posts_{side}", views.post_seconds + time.perf_counter() - t0)
-            log.info("%s: %d trellis posts from %d post views", side, len(posts), len(views.posts))
-        if cfg.trunks.source != "off":
-            t0 = time.perf_counter()
-            trunks = build_trunk_landmarks(points, ba.poses, views.views, intr, cfg.trunks, cfg.ground,
-                                           np.random.default_rng(cfg.seed))
-            if posts:
-                trunks, posts, said = separate_trunks_from_posts(trunks, posts, ba.poses)
-                for line in said:
-                    log.warning("%s: %s", side, line)
-            timings.add(f"trunks_{side}", time.perf_counter() - t0)
-            if not trunks:
-                log.warning("%s: no trunk found (trunks.json lists none for this side)", side)
-            if views.unavailable:
-                flag_trunks_near(trunks, ba.poses[views.unavailable, :3, 3], cfg.fusion.depth_max_m)
-                log.warning("%s: the trunk detector did not answer for %d keyframes (%.1f-%.1f s): trees "
-                            "there may be missing; %d trunks near them are flagged", side,
-                            len(views.unavailable), stamps[views.unavailable[0]], stamps[views.unavailable[-1]],
-                            sum(DETECTOR_UNAVAILABLE in t.flags for t in trunks))
+        if views.posts or cfg.trunks.source != "off":
+            trunk_job = TrunkJob(side, points, ba.poses, stamps, views.views, views.posts, views.post_seconds,
+                                 views.unavailable, intr, cfg)
     release_freed_memory()
-    return SideMap(
+    side_map = SideMap(
         side=side, frame_id=getattr(cfg.frames, f"odom_{side}"), intrinsics=intr,
         keyframe_stamps=stamps, keyframe_poses=ba.poses,
         landmarks=ba.landmarks, observations=fe.observations, loops=loops,
         cloud_points=points, cloud_colors=colors,
         scale_free=cfg.input.mode == "rgb",
         odometry_poses=odometry,
-        trunks=trunks,
-        posts=posts,
     )
+    return side_map, trunk_job
+
+
+@dataclass(frozen=True)
+class TrunkJob:
+    """What modelling one side's trunks and posts needs once its cloud is fused. It pickles: `orchard-map run`
+    models a side's trunks in a worker process (TrunkWorker) while the next side is tracked."""
+
+    side: str
+    points: np.ndarray  # (P, 3) float32 fused cloud, odom
+    poses: np.ndarray  # (K, 4, 4) bundle-adjusted T_odom_cam
+    stamps: np.ndarray  # (K,) s
+    views: list[TrunkView]  # the keyframes with a trunk detection
+    post_views: list[PostObservation]  # each post detection's own fit
+    post_fit_seconds: float  # s fusion spent fitting them
+    unavailable: list[int]  # keyframes the detector could not answer for
+    intrinsics: CameraIntrinsics
+    cfg: OrchardConfig
+
+
+@dataclass(frozen=True)
+class TrunkModel:
+    """One side's trunk and post landmarks (`model_trunks`), with what is to be logged and timed of them."""
+
+    trunks: list[TrunkLandmark]
+    posts: list
+    warnings: list[str]  # each to be logged for the side
+    info: list[str]
+    seconds: dict[str, float]  # stage -> s
+
+
+def model_trunks(job: TrunkJob) -> TrunkModel:
+    """Post landmarks from the post views, trunk landmarks with their local grounds from the fused cloud and the
+    trunk views; a trunk that is a post is set aside. Pure: the same job gives the same model in any process."""
+    cfg, side = job.cfg, job.side
+    seconds: dict[str, float] = {}
+    warnings: list[str] = []
+    info: list[str] = []
+    trunks: list[TrunkLandmark] = []
+    posts: list = []
+    if job.post_views:
+        t0 = time.perf_counter()
+        posts = build_post_landmarks(job.post_views, job.poses)
+        seconds[f"posts_{side}"] = job.post_fit_seconds + time.perf_counter() - t0
+        info.append(f"{len(posts)} trellis posts from {len(job.post_views)} post views")
+    if cfg.trunks.source != "off":
+        t0 = time.perf_counter()
+        trunks = build_trunk_landmarks(job.points, job.poses, job.views, job.intrinsics, cfg.trunks, cfg.ground,
+                                       np.random.default_rng(cfg.seed))
+        if posts:
+            trunks, posts, said = separate_trunks_from_posts(trunks, posts, job.poses)
+            warnings += said
+        seconds[f"trunks_{side}"] = time.perf_counter() - t0
+        if not trunks:
+            warnings.append("no trunk found (trunks.json lists none for this side)")
+        if job.unavailable:
+            flag_trunks_near(trunks, job.poses[job.unavailable, :3, 3], cfg.fusion.depth_max_m)
+            warnings.append(f"the trunk detector did not answer for {len(job.unavailable)} keyframes "
+                            f"({job.stamps[job.unavailable[0]]:.1f}-{job.stamps[job.unavailable[-1]]:.1f} s): trees "
+                            f"there may be missing; {sum(DETECTOR_UNAVAILABLE in t.flags for t in trunks)} trunks near "
+                            "them are flagged")
+    return TrunkModel(trunks, posts, warnings, info, seconds)
+
+
+def with_trunks(side_map: SideMap, model: TrunkModel, timings: Timings) -> SideMap:
+    """The side map with its trunks and posts; what modelling them said is logged, its time added."""
+    for line in model.info:
+        log.info("%s: %s", side_map.side, line)
+    for line in model.warnings:
+        log.warning("%s: %s", side_map.side, line)
+    for stage, seconds in model.seconds.items():
+        timings.add(stage, seconds)
+    return replace(side_map, trunks=model.trunks, posts=model.posts)
+
+
+def finish_side(job: SideHandover, timings: Timings) -> SideMap:
+    """Loop detection, pose graph, bundle adjustment, TSDF fusion (cleaning the keyframes with a trunk
+    detection, with trunks.view_depth "cleaned"), trunk cylinders and local grounds: the side map."""
+    side_map, trunk_job = finish_side_geometry(job, timings)
+    return side_map if trunk_job is None else with_trunks(side_map, model_trunks(trunk_job), timings)
+
+
+PendingSide = Callable[[], SideMap]
+
+
+def finish_side_later(job: SideHandover, timings: Timings, worker: "TrunkWorker | None") -> PendingSide:
+    """finish_side with its trunk modelling handed to `worker` (None: done here): the side map once called."""
+    side_map, trunk_job = finish_side_geometry(job, timings)
+    if trunk_job is None:
+        return lambda: side_map
+    if worker is None:
+        side_map = with_trunks(side_map, model_trunks(trunk_job), timings)
+        return lambda: side_map
+    future = worker.submit(trunk_job)
+    return lambda: with_trunks(side_map, worker.result(future, trunk_job), timings)
+
+
+def _warm_up() -> None:
+    """A worker's first job: nothing, once the imports are done (they take ~1 s, off the main process)."""
+
+
+class TrunkWorker:
+    """A process that models a side's trunks (`model_trunks`) while the main process tracks the next side.
+
+    The run is mostly Python on one core; the trunk detector's thread uses part of the other while the front end
+    runs, and trunk modelling (Python too, so not a thread) takes the rest. Spawned, not forked: the main process
+    holds onnxruntime's threads. If the worker dies, the side's trunks are modelled here instead."""
+
+    def __init__(self) -> None:
+        import multiprocessing
+        from concurrent.futures import ProcessPoolExecutor
+
+        self._pool = ProcessPoolExecutor(1, mp_context=multiprocessing.get_context("spawn"))
+        self._pool.submit(_warm_up)
+
+    def submit(self, job: TrunkJob) -> Future:
+        return self._pool.submit(model_trunks, job)
+
+    @staticmethod
+    def result(future: Future, job: TrunkJob) -> TrunkModel:
+        from concurrent.futures.process import BrokenProcessPool
+
+        try:
+            return future.result()
+        except BrokenProcessPool as err:
+            log.warning("%s: the trunk worker process stopped (%s); modelling the trunks here", job.side, err)
+            return model_trunks(job)
+
+    def close(self) -> None:
+        self._pool.shutdown(wait=True, cancel_futures=True)
 
 
 def reconstruct_side(seq: RGBDSequence, side: str, cfg: OrchardConfig, timings: Timings, labelled: bool = False,
                      progress: Progress | None = None) -> SideMap:
     """One side of a bag through a `SideSession` (fusion reads the keyframes' images from the bag again)."""
+    return reconstruct_side_later(seq, side, cfg, timings, labelled, progress, None)()
+
+
+def reconstruct_side_later(seq: RGBDSequence, side: str, cfg: OrchardConfig, timings: Timings, labelled: bool,
+                           progress: Progress | None, worker: "TrunkWorker | None") -> "PendingSide":
+    """`reconstruct_side` with the side's trunk modelling handed to `worker` (None: done here)."""
     n = int(np.sum(_side_mask(seq, side))) if labelled else len(seq)
     session = SideSession(side, seq.intrinsics, cfg, BagKeyframeImages(seq, side, labelled), bag=seq.bag)
     t0 = time.perf_counter()
@@ -368,11 +489,11 @@ def reconstruct_side(seq: RGBDSequence, side: str, cfg: OrchardConfig, timings: 
         if progress:
             progress(side, i + 1, n)
     session.seconds = time.perf_counter() - t0  # the front end's stage includes decoding the bag's images
-    return session.finish(timings)
+    return session.finish_later(timings, worker)
 
 
 def reconstruct_drive(seq: RGBDSequence, cfg: OrchardConfig, timings: Timings,
-                      progress: Progress | None = None) -> dict[str, SideMap]:
+                      progress: Progress | None = None, worker: "TrunkWorker | None" = None) -> dict[str, SideMap]:
     """One continuous drive round a row without side labels: each frame tracked by its side's `SideSession`,
     the side changing half way round the U-turn (core.sides.UTurnSides), as the live odometry node does."""
     turns = UTurnSides()
@@ -396,11 +517,13 @@ def reconstruct_drive(seq: RGBDSequence, cfg: OrchardConfig, timings: Timings,
     if session is not None:
         seconds[session.side] = time.perf_counter() - t0
     log.info("drive: %s", ", ".join(f"{side} {s.frames} frames" for side, s in sessions.items()))
-    out = {}
+    pending = {}
+    last = list(sessions)[-1]
     for side, s in sessions.items():
         s.seconds = seconds[side]  # the front end's stage includes decoding the bag's images
-        out[side] = s.finish(timings)
-    return out
+        # a side's trunks are modelled in the worker while the next side is finished
+        pending[side] = s.finish_later(timings, worker if side != last else None)
+    return {side: p() for side, p in pending.items()}
 
 
 def release_freed_memory() -> None:
@@ -941,28 +1064,39 @@ def run(front: str | Path, back: str | Path | None, out: str | Path, cfg: Orchar
 
 def _run(front: Path, back: Path | None, out: Path, cfg: OrchardConfig, progress: Progress | None) -> RunResult:
     timings = Timings()
-    t0 = time.perf_counter()
+    t0 = t_start = time.perf_counter()
     seqs = open_sides(front, back, cfg)
     timings.add("read_bags", time.perf_counter() - t0)
     labelled = back is None
     sides: dict[str, SideMap] = {}
     refused: str | None = None
-    if DRIVE in seqs:
-        seq = seqs.pop(DRIVE)
-        timings.frames += len(seq)
-        timings.recording_duration_s += seq.duration
-        for side, sm in reconstruct_drive(seq, cfg, timings, progress).items():
-            sides[side] = sm
-            write_side(out, sm)
-    for side, seq in seqs.items():
-        timings.frames += int(np.sum(_side_mask(seq, side))) if labelled else len(seq)
-        if labelled:
-            st = seq.stamps[_side_mask(seq, side)]
-            timings.recording_duration_s += float(st[-1] - st[0]) if len(st) > 1 else 0.0
-        else:
+    # Two sides with trunks: the first side's trunks are modelled in a worker process while the next is tracked
+    worker = (TrunkWorker() if cfg.trunks.source != "off" and cfg.input.mode == "rgbd"
+              and (DRIVE in seqs or len(seqs) > 1) else None)
+    try:
+        if DRIVE in seqs:
+            seq = seqs.pop(DRIVE)
+            timings.frames += len(seq)
             timings.recording_duration_s += seq.duration
-        sides[side] = reconstruct_side(seq, side, cfg, timings, labelled, progress)
-        write_side(out, sides[side])
+            for side, sm in reconstruct_drive(seq, cfg, timings, progress, worker).items():
+                sides[side] = sm
+                write_side(out, sm)
+        pending: dict[str, PendingSide] = {}
+        for i, (side, seq) in enumerate(seqs.items()):
+            timings.frames += int(np.sum(_side_mask(seq, side))) if labelled else len(seq)
+            if labelled:
+                st = seq.stamps[_side_mask(seq, side)]
+                timings.recording_duration_s += float(st[-1] - st[0]) if len(st) > 1 else 0.0
+            else:
+                timings.recording_duration_s += seq.duration
+            pending[side] = reconstruct_side_later(seq, side, cfg, timings, labelled, progress,
+                                                   worker if i < len(seqs) - 1 else None)
+        for side, p in pending.items():
+            sides[side] = p()
+            write_side(out, sides[side])
+    finally:
+        if worker is not None:
+            worker.close()
     if cfg.trunks.source != "off" and cfg.input.mode == "rgbd":
         write_landmarks(out, sides, cfg)
         if cfg.merge.method != "off" and set(sides) == {"front", "back"}:
@@ -976,7 +1110,8 @@ def _run(front: Path, back: Path | None, out: Path, cfg: OrchardConfig, progress
                 write_merge(out, merged, sides, clouds)
                 write_trees(out, trees, frame="map")
             timings.add("merge", time.perf_counter() - t0)
+    timings.wall_s = time.perf_counter() - t_start
     write_timings(out / "timings.json", timings.stages, frames=timings.frames,
-                  recording_duration_s=timings.recording_duration_s)
+                  recording_duration_s=timings.recording_duration_s, wall_s=timings.wall_s)
     atomic_write_text(out / "config.effective.yaml", dump_yaml(cfg))
     return RunResult(out, sides, timings, refused)

@@ -6,6 +6,7 @@ Only this layer turns the package's typed errors into messages and exit codes.
 from __future__ import annotations
 
 import json
+import math
 import logging
 from pathlib import Path
 from typing import Any, Optional
@@ -124,7 +125,7 @@ def run(
     for side, sm in result.sides.items():
         trunks = f", {len(sm.trunks)} trunks" if cfg.trunks.source != "off" else ""
         console.print(f"{side}: {len(sm.keyframe_stamps)} keyframes, {len(sm.observations)} observations{trunks}")
-    total = sum(t.stages.values())
+    total = t.wall_s if t.wall_s is not None else sum(t.stages.values())
     rtf = total / t.recording_duration_s if t.recording_duration_s > 0 else float("nan")
     console.print(f"{t.frames} frames in {total:.1f} s (real-time factor {rtf:.2f}); results in {out}")
 
@@ -265,6 +266,10 @@ def train_detector(
     init: Path | None = typer.Option(None, help="Weights (.pt written beside a trained model, e.g. "
                                      "models/trunk_maskrcnn.pt) to fine-tune instead of training from scratch."),
     lr_scale: float = typer.Option(0.25, help="With --init: peak learning rate as a fraction of 0.02."),
+    min_size: int = typer.Option(320, help="px: the model's input short side (frames are resized to it inside "
+                                 "the network; larger finds smaller trunks and costs more per frame)."),
+    train_size: list[int] = typer.Option([], help="px: more short sides to train at, one drawn per image "
+                                         "(scale jitter; repeat the option)."),
 ) -> None:
     """Train the trunk/post Mask R-CNN (from scratch, or fine-tune --init) and export it to ONNX and .pt
     (needs requirements-train.lock)."""
@@ -280,8 +285,12 @@ def train_detector(
 
     try:
         folders = _coco_folders(data, out.parent / ".coco_cache", every)
-        card = train(folders, out, TrainSettings(iterations=iterations, seed=seed, threads=threads,
-                                                 lr_scale=lr_scale if init is not None else 1.0),
+        if min_size < 64 or any(t < 64 for t in train_size):
+            raise ValueError(f"--min-size and --train-size must be at least 64 px, got {min_size} and {train_size}")
+        settings = TrainSettings(iterations=iterations, seed=seed, threads=threads,
+                                 lr_scale=lr_scale if init is not None else 1.0, min_size=min_size,
+                                 max_size=math.ceil(min_size * 4 / 3), train_sizes=tuple(train_size))
+        card = train(folders, out, settings,
                      log=lambda m: err_console.print(m), init=init)
     except (OrchardMappingError, ValueError, FloatingPointError) as err:
         raise _fail(err) from err

@@ -244,7 +244,8 @@ def _timings_part(gt: GroundTruth, result_dir: Path) -> TimingSummary:
         frames=tm.frames,
         recording_duration_s=rec,
         recording_duration_source=source,
-        realtime_factor=tm.total_s / rec if rec else None,
+        realtime_factor=tm.elapsed_s / rec if rec else None,
+        elapsed_s=tm.elapsed_s,
     )
 
 

@@ -545,22 +545,33 @@ class Timings:
     stages: Mapping[str, float]  # s
     frames: int | None = None
     recording_duration_s: float | None = None  # s
+    # s, the run's wall clock: less than the stages' sum where stages overlap (the trunk detector's thread beside
+    # the front end, a side's trunk modelling in a worker process); None in files from before it was written
+    wall_s: float | None = None
 
     @property
     def total_s(self) -> float:
         return float(math.fsum(self.stages.values()))
 
+    @property
+    def elapsed_s(self) -> float:
+        """The run's wall clock where the file gives it, else the stages' sum."""
+        return self.wall_s if self.wall_s is not None else self.total_s
+
 
 def write_timings(
-    path: str | Path, stages: Mapping[str, float], frames: int | None = None, recording_duration_s: float | None = None
+    path: str | Path, stages: Mapping[str, float], frames: int | None = None, recording_duration_s: float | None = None,
+    wall_s: float | None = None,
 ) -> Path:
     """Write timings.json (validated first)."""
     path = Path(path)
-    doc = {
+    doc: dict[str, Any] = {
         "stages": {str(k): float(v) for k, v in stages.items()},
         "frames": frames,
         "recording_duration_s": recording_duration_s,
     }
+    if wall_s is not None:
+        doc["wall_s"] = float(wall_s)
     _timings_from_document(json.loads(_dumps(doc, path)), path)
     return atomic_write_json(path, doc)
 
@@ -571,7 +582,8 @@ def _timings_from_document(doc: Any, path: Path) -> Timings:
     parsed = {str(k): _number(v, path, f"stages.{k}", minimum=0.0) for k, v in stages.items()}
     frames = _integer(d.get("frames"), path, "frames", nullable=True, minimum=0)
     rec = _number(d.get("recording_duration_s"), path, "recording_duration_s", nullable=True, minimum=0.0)
-    return Timings(stages=parsed, frames=frames, recording_duration_s=rec)  # type: ignore[arg-type]
+    wall = _number(d.get("wall_s"), path, "wall_s", nullable=True, minimum=0.0)
+    return Timings(stages=parsed, frames=frames, recording_duration_s=rec, wall_s=wall)  # type: ignore[arg-type]
 
 
 def read_timings(path: str | Path) -> Timings:

@@ -40,8 +40,10 @@ class TrainSettings:
     lr: float = 0.02  # SGD, warm-up then cosine decay
     weight_decay: float = 1e-4
     warmup: int = 200
-    min_size: int = 320  # px, short side of the network input
-    max_size: int = 427
+    min_size: int = 320  # px, short side of the network input (exported model)
+    max_size: int = 427  # px, long side at most (640 x 480 frames: 4/3 of min_size)
+    # px: short sides drawn at random per training image besides min_size (scale jitter); () trains at min_size
+    train_sizes: tuple[int, ...] = ()
     fpn_channels: int = 96
     representation: int = 256
     seed: int = 0
@@ -78,7 +80,9 @@ def build_model(s: TrainSettings):
                               aspect_ratios=((1.0, 2.0, 4.0, 6.0),) * 3)  # h/w: trunks are tall
     c = s.fpn_channels
     model = MaskRCNN(
-        backbone, num_classes=None, min_size=s.min_size, max_size=s.max_size,
+        # torchvision draws a training size from min_size and predicts at its last entry
+        backbone, num_classes=None, min_size=(*s.train_sizes, s.min_size),
+        max_size=max(s.max_size, *(math.ceil(t * 4 / 3) for t in s.train_sizes)),
         rpn_anchor_generator=anchors,
         box_roi_pool=MultiScaleRoIAlign(levels, 7, 2), mask_roi_pool=MultiScaleRoIAlign(levels, 14, 2),
         box_head=TwoMLPHead(c * 7 * 7, s.representation),
@@ -231,6 +235,7 @@ def export_onnx(model, out: Path, s: TrainSettings, size: tuple[int, int] = (480
     import torch
 
     model.transform.postprocess = types.MethodType(_box_masks_postprocess, model.transform)
+    model.transform.min_size, model.transform.max_size = (s.min_size,), s.max_size
     out.parent.mkdir(parents=True, exist_ok=True)
     tmp = out.with_name(f".{out.name}.partial")
     x = torch.rand(3, *size)

@@ -150,3 +150,28 @@ def test_the_foot_lies_on_the_merge_axis_not_on_a_leaning_fused_trunk():
     assert off_axis_mm(lm.ground.point) > 4.0  # where the fused trunk's own axis meets the ground
     assert off_axis_mm(lm.base) < 1.5
     assert abs(lm.base[1] - GROUND_Y) < 0.005
+
+
+def test_a_sides_trunks_modelled_in_the_worker_process_are_the_ones_modelled_here():
+    """`orchard-map run` models the first side's trunks in a spawned process while the next side is tracked:
+    the job must pickle whole and give the same landmarks, flags and warnings as modelling them in-process."""
+    from orchard_mapping.config import load_config
+    from orchard_mapping.pipeline import TrunkJob, TrunkWorker, model_trunks
+
+    points, poses, views = _side()
+    job = TrunkJob("front", points.astype(np.float32), poses, np.arange(len(poses), dtype=float), views, [], 0.0,
+                   [3], INTR, load_config())
+    here = model_trunks(job)
+    worker = TrunkWorker()
+    try:
+        there = TrunkWorker.result(worker.submit(job), job)
+    finally:
+        worker.close()
+    assert len(here.trunks) == len(there.trunks) == 1
+    a, b = here.trunks[0], there.trunks[0]
+    assert a.diameter_m == pytest.approx(2 * RADIUS, abs=0.001)
+    assert b.diameter_m == a.diameter_m and np.array_equal(b.axis, a.axis) and np.array_equal(b.base, a.base)
+    # keyframe 3 had no detector answer: the trunk beside it is flagged, and the side says so, in both
+    assert b.flags == a.flags and "detector_unavailable_nearby" in a.flags
+    assert here.warnings == there.warnings and "did not answer for 1 keyframes" in here.warnings[0]
+    assert set(there.seconds) == {"trunks_front"}

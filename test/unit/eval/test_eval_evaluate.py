@@ -350,6 +350,11 @@ def test_partial_folder_and_timing_fallback(truth_path: Path, result_dir: Path) 
     assert rep.timings is not None and rep.timings.recording_duration_source == "ground truth"
     assert rep.timings.realtime_factor == pytest.approx(2.0 / (30 / 15.0 * 2))
     assert "n/a" in _render(rep.table())
+    # stages that overlapped sum to more than the run took: the wall clock, when given, is what is divided
+    (result_dir / "timings.json").write_text(json.dumps({"stages": {"odometry": 2.0, "trunks": 1.0}, "wall_s": 2.5}))
+    tm = evaluate_result(truth_path, result_dir).timings
+    assert tm is not None and tm.total_s == pytest.approx(3.0) and tm.elapsed_s == pytest.approx(2.5)
+    assert tm.realtime_factor == pytest.approx(2.5 / (30 / 15.0 * 2))
 
 
 def test_bad_inputs_raise_typed_errors(truth_path: Path, result_dir: Path, tmp_path: Path) -> None:

@@ -139,6 +139,14 @@ def test_side_merge_and_timings_round_trip(tmp_path: Path) -> None:
     R.write_timings(tmp_path / "timings.json", {"odometry": 1.5, "merge": 0.25}, frames=10, recording_duration_s=2.0)
     tm = R.read_timings(tmp_path)
     assert dict(tm.stages) == {"odometry": 1.5, "merge": 0.25} and tm.total_s == 1.75 and tm.frames == 10
+    assert tm.wall_s is None and tm.elapsed_s == 1.75  # a file without the wall clock: the stages' sum
+    # stages that overlap (a worker process) sum to more than the wall clock, which the file then gives
+    R.write_timings(tmp_path / "timings.json", {"odometry": 1.5, "trunks": 0.5}, recording_duration_s=2.0, wall_s=1.6)
+    tm = R.read_timings(tmp_path)
+    assert tm.total_s == 2.0 and tm.wall_s == 1.6 and tm.elapsed_s == 1.6
+    (tmp_path / "timings.json").write_text(json.dumps({"stages": {"odometry": 1}, "wall_s": -2}))
+    with pytest.raises(ResultFormatError, match=r"field 'wall_s'"):
+        R.read_timings(tmp_path)
     (tmp_path / "timings.json").write_text(json.dumps({"stages": {"odometry": -1}}))
     with pytest.raises(ResultFormatError, match=r"field 'stages\.odometry'"):
         R.read_timings(tmp_path)
