@@ -38,7 +38,7 @@ from orchard_mapping.core.sides import UTurnSides
 from orchard_mapping.core.cylinder import Cylinder
 from orchard_mapping.core.trunks import TrunkLandmark, TrunkView, build_trunk_landmarks, ground_around_trunk
 from orchard_mapping.core.detection import CLASS_POST, CLASS_TRUNK
-from orchard_mapping.core.posts import (PostObservation, build_post_landmarks, fit_post_view, post_shapes,
+from orchard_mapping.core.posts import (build_post_landmarks, fit_post_view, post_shapes,
                                        separate_trunks_from_posts)
 from orchard_mapping.core.types import CameraIntrinsics, ImagePatch, RGBDFrame, StampedTrajectory, mask_bounds
 from orchard_mapping.errors import AlignmentError, BagError, BagFormatError, MergeRefusedError
@@ -325,12 +325,12 @@ def finish_side_geometry(job: SideHandover, timings: Timings) -> tuple[SideMap, 
         views = TrunkViews(cfg, stamps, ba.poses, intr, job.detections, frame_index)
         fused = fuse_keyframes(job.images, frame_index, ba.poses, intr, cfg, views)
         points, colors = fused.points, fused.colors
-        timings.add(f"fusion_{side}", time.perf_counter() - t0 - views.post_seconds)
+        timings.add(f"fusion_{side}", time.perf_counter() - t0)
         # the detector ran beside the front end: its time overlaps the front end's stage
         timings.add(f"trunk_detection_{side}", job.detection_seconds)
-        if views.posts or cfg.trunks.source != "off":
-            trunk_job = TrunkJob(side, points, ba.poses, stamps, views.views, views.posts, views.post_seconds,
-                                 views.unavailable, intr, cfg)
+        if views.post_views or cfg.trunks.source != "off":
+            trunk_job = TrunkJob(side, points, ba.poses, stamps, views.views, views.post_views, views.unavailable,
+                                 intr, cfg)
     release_freed_memory()
     side_map = SideMap(
         side=side, frame_id=getattr(cfg.frames, f"odom_{side}"), intrinsics=intr,
@@ -353,8 +353,7 @@ class TrunkJob:
     poses: np.ndarray  # (K, 4, 4) bundle-adjusted T_odom_cam
     stamps: np.ndarray  # (K,) s
     views: list[TrunkView]  # the keyframes with a trunk detection
-    post_views: list[PostObservation]  # each post detection's own fit
-    post_fit_seconds: float  # s fusion spent fitting them
+    post_views: list[PostView]  # each post detection, with the raw depth around it
     unavailable: list[int]  # keyframes the detector could not answer for
     intrinsics: CameraIntrinsics
     cfg: OrchardConfig
@@ -382,9 +381,15 @@ def model_trunks(job: TrunkJob) -> TrunkModel:
     posts: list = []
     if job.post_views:
         t0 = time.perf_counter()
-        posts = build_post_landmarks(job.post_views, job.poses)
-        seconds[f"posts_{side}"] = job.post_fit_seconds + time.perf_counter() - t0
-        info.append(f"{len(posts)} trellis posts from {len(job.post_views)} post views")
+        # each view's own fit, from its raw depth: RANSAC and the Huber refit reject stray pixels, so a post
+        # needs no cleaned depth
+        rng = np.random.default_rng(cfg.seed)
+        fits = [fit_post_view(np.asarray(v.depth), np.asarray(v.mask), job.intrinsics, v.up_cam, v.keyframe, rng)
+                for v in job.post_views]
+        fits = [f for f in fits if f is not None]
+        posts = build_post_landmarks(fits, job.poses) if fits else []
+        seconds[f"posts_{side}"] = time.perf_counter() - t0
+        info.append(f"{len(posts)} trellis posts from {len(fits)} post views")
     if cfg.trunks.source != "off":
         t0 = time.perf_counter()
         trunks = build_trunk_landmarks(job.points, job.poses, job.views, job.intrinsics, cfg.trunks, cfg.ground,
@@ -612,6 +617,16 @@ class EarlyDetections:
             self._worker.shutdown(wait=True, cancel_futures=True)
 
 
+@dataclass(frozen=True)
+class PostView:
+    """One post detection of keyframe k, as its fit (core.posts.fit_post_view) reads it."""
+
+    keyframe: int
+    up_cam: np.ndarray  # (3,) the side's up in this camera
+    depth: ImagePatch  # raw depth m, around the mask
+    mask: ImagePatch  # bool
+
+
 class TrunkViews:
     """Takes the detections made beside the front end (`EarlyDetections`) as fusion comes to their keyframes
     (`select`), fits the posts they found, and keeps what trunk modelling and the two-side diameter need of
@@ -628,16 +643,15 @@ class TrunkViews:
         self.detections, self.frame_index = detections, frame_index
         self.unavailable: list[int] = []  # keyframes the detector could not answer for
         self.views: list[TrunkView] = []
-        self.post_seconds = 0.0  # s spent fitting posts
         # keyframe -> its trunk detections and the part of the frame around them, until it is cleaned
         self._detections: dict[int, tuple[list, Region]] = {}
-        self.posts: list[PostObservation] = []  # each post detection's own fit (core/posts.py), raw depth
+        self.post_views: list[PostView] = []  # each post detection, fitted in model_trunks
         self._up = -poses[0][:3, 1] if len(poses) else np.array([0.0, -1.0, 0.0])  # odom: the first camera's up
-        self._rng = np.random.default_rng(cfg.seed)
 
     def select(self, k: int, color: np.ndarray, depth: np.ndarray | None = None) -> bool | Region:
-        """Keyframe k, if the detector saw it: its posts fitted (raw depth), and the part of it fusion is to
-        clean (the rows and columns around its trunk detections, as `__call__` crops them), or False."""
+        """Keyframe k, if the detector saw it: its posts kept with the raw depth around them, and the part of it
+        fusion is to clean (the rows and columns around its trunk detections, as `__call__` crops them), or
+        False."""
         fi = self.frame_index[k]
         if fi not in self.detections:
             return False
@@ -646,14 +660,14 @@ class TrunkViews:
             self.unavailable.append(k)
             return False
         if depth is not None and self.cfg.semantic_ba.use_posts:
-            # A post is fitted from this frame's raw depth at once: its observation needs no cleaned depth
-            # (RANSAC and the Huber refit reject stray pixels), so a frame with posts only is not cleaned.
-            t0 = time.perf_counter()
+            # A post is fitted from this frame's raw depth (model_trunks), so a frame with posts only is not
+            # cleaned. The fit reads the depth inside the (eroded) mask: the mask's box is all that is kept.
             up_cam = self.poses[k][:3, :3].T @ self._up
             for d in found:
-                if d.class_id == CLASS_POST and (obs := fit_post_view(depth, d.mask, self.intr, up_cam, k, self._rng)):
-                    self.posts.append(obs)
-            self.post_seconds += time.perf_counter() - t0
+                if d.class_id == CLASS_POST:
+                    mask = np.asarray(d.mask, bool)
+                    box = mask_bounds(mask)
+                    self.post_views.append(PostView(k, up_cam, ImagePatch.crop(depth, box), ImagePatch.crop(mask, box)))
         dets = [d for d in found if d.class_id == CLASS_TRUNK]
         if not dets:
             return False

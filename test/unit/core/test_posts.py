@@ -145,3 +145,29 @@ def test_separate_trunks_from_posts_by_the_frames_that_saw_the_object():
     apart = [_post_landmark(0, 0.0 + 0.035 + 0.05 + 0.04, 20)]
     kept, kept_posts, said = separate_trunks_from_posts(trunks[:1], apart, poses)
     assert len(kept) == 1 and len(kept_posts) == 1 and not said
+
+
+def test_post_views_kept_as_their_masks_box_give_the_posts_of_the_whole_frames():
+    """The pipeline keeps of each post detection only its mask's box of the raw depth (PostView) and fits the
+    posts later (model_trunks, maybe in the worker process): the landmarks must be those of the whole frames."""
+    from orchard_mapping.config import load_config
+    from orchard_mapping.core.types import ImagePatch, mask_bounds
+    from orchard_mapping.pipeline import PostView, TrunkJob, model_trunks
+
+    cfg = load_config()
+    rng = np.random.default_rng(5)
+    poses = np.array([_camera(x, *LEVEL) for x in np.linspace(-0.6, 0.6, 5)])  # odom = world here
+    frames = [_render(T, rng) for T in poses]
+    ups = [T[:3, :3].T @ np.array([0.0, 0.0, 1.0]) for T in poses]
+    fit_rng = np.random.default_rng(cfg.seed)
+    whole = build_post_landmarks([fit_post_view(d, m, INTR, up, k, fit_rng)
+                                  for k, ((d, m), up) in enumerate(zip(frames, ups))], poses)
+    views = [PostView(k, up, ImagePatch.crop(d, mask_bounds(m)), ImagePatch.crop(m, mask_bounds(m)))
+             for k, ((d, m), up) in enumerate(zip(frames, ups))]
+    assert sum(v.depth.nbytes for v in views) < 0.2 * sum(d.nbytes for d, _ in frames)
+    job = TrunkJob("front", np.zeros((0, 3), np.float32), poses, np.arange(5.0), [], views, [], INTR, cfg)
+    kept = model_trunks(job).posts
+    assert len(whole) == len(kept) == 1
+    assert kept[0].radius_m == whole[0].radius_m and abs(kept[0].radius_m - RADIUS) < 0.01
+    assert np.array_equal(kept[0].place, whole[0].place)
+    assert [o.keyframe for o in kept[0].observations] == [o.keyframe for o in whole[0].observations]

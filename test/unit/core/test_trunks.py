@@ -159,8 +159,8 @@ def test_a_sides_trunks_modelled_in_the_worker_process_are_the_ones_modelled_her
     from orchard_mapping.pipeline import TrunkJob, TrunkWorker, model_trunks
 
     points, poses, views = _side()
-    job = TrunkJob("front", points.astype(np.float32), poses, np.arange(len(poses), dtype=float), views, [], 0.0,
-                   [3], INTR, load_config())
+    job = TrunkJob("front", points.astype(np.float32), poses, np.arange(len(poses), dtype=float), views, [], [3],
+                   INTR, load_config())
     here = model_trunks(job)
     worker = TrunkWorker()
     try:
