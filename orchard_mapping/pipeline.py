@@ -241,10 +241,14 @@ class SideSession:
         """Everything after the front end; the side map. Lets go of the kept keyframe images."""
         return self.finish_later(timings, None)()
 
-    def finish_later(self, timings: Timings, worker: "TrunkWorker | None") -> "PendingSide":
-        """`finish` with the trunk modelling handed to `worker` (None: done here); the side map once called."""
+    def finish_later(self, timings: Timings, worker: "TrunkWorker | None", here: bool = False) -> "PendingSide":
+        """`finish` with the trunk modelling handed to `worker` (None, or here=True: done here); the side map once
+        called. The worker's waiting jobs (an earlier side's) start now that this side's front end is over."""
         try:
-            return finish_side_later(self.handover(), timings, worker)
+            job = self.handover()
+            if worker is not None:
+                worker.start()
+            return finish_side_later(job, timings, worker, here)
         finally:
             self.images.close()
 
@@ -370,30 +374,51 @@ class TrunkModel:
     seconds: dict[str, float]  # stage -> s
 
 
-def model_trunks(job: TrunkJob) -> TrunkModel:
+@dataclass(frozen=True)
+class PostModel:
+    """One side's post landmarks (`fit_posts`)."""
+
+    posts: list
+    views: int  # post views that gave a fit
+    seconds: float
+
+
+def fit_posts(job: TrunkJob) -> PostModel:
+    """Each post view's own fit from its raw depth (RANSAC and the Huber refit reject stray pixels, so a post
+    needs no cleaned depth), grouped into post landmarks. Reads neither the cloud nor the trunk views."""
+    t0 = time.perf_counter()
+    rng = np.random.default_rng(job.cfg.seed)
+    fits = [fit_post_view(np.asarray(v.depth), np.asarray(v.mask), job.intrinsics, v.up_cam, v.keyframe, rng)
+            for v in job.post_views]
+    fits = [f for f in fits if f is not None]
+    posts = build_post_landmarks(fits, job.poses) if fits else []
+    return PostModel(posts, len(fits), time.perf_counter() - t0)
+
+
+def model_trunks(job: TrunkJob, post_model: "Callable[[], PostModel] | None" = None) -> TrunkModel:
     """Post landmarks from the post views, trunk landmarks with their local grounds from the fused cloud and the
-    trunk views; a trunk that is a post is set aside. Pure: the same job gives the same model in any process."""
+    trunk views; a trunk that is a post is set aside. Pure: the same job gives the same model in any process.
+    post_model: the posts fitted elsewhere (called once the trunks are modelled), instead of here first."""
     cfg, side = job.cfg, job.side
     seconds: dict[str, float] = {}
     warnings: list[str] = []
     info: list[str] = []
     trunks: list[TrunkLandmark] = []
     posts: list = []
-    if job.post_views:
-        t0 = time.perf_counter()
-        # each view's own fit, from its raw depth: RANSAC and the Huber refit reject stray pixels, so a post
-        # needs no cleaned depth
-        rng = np.random.default_rng(cfg.seed)
-        fits = [fit_post_view(np.asarray(v.depth), np.asarray(v.mask), job.intrinsics, v.up_cam, v.keyframe, rng)
-                for v in job.post_views]
-        fits = [f for f in fits if f is not None]
-        posts = build_post_landmarks(fits, job.poses) if fits else []
-        seconds[f"posts_{side}"] = time.perf_counter() - t0
-        info.append(f"{len(posts)} trellis posts from {len(fits)} post views")
+
+    def take_posts(pm: PostModel) -> list:
+        seconds[f"posts_{side}"] = pm.seconds
+        info.append(f"{len(pm.posts)} trellis posts from {pm.views} post views")
+        return pm.posts
+
+    if job.post_views and post_model is None:
+        posts = take_posts(fit_posts(job))
     if cfg.trunks.source != "off":
         t0 = time.perf_counter()
         trunks = build_trunk_landmarks(job.points, job.poses, job.views, job.intrinsics, cfg.trunks, cfg.ground,
                                        np.random.default_rng(cfg.seed))
+        if job.post_views and post_model is not None:
+            posts = take_posts(post_model())
         if posts:
             trunks, posts, said = separate_trunks_from_posts(trunks, posts, job.poses)
             warnings += said
@@ -430,51 +455,87 @@ def finish_side(job: SideHandover, timings: Timings) -> SideMap:
 PendingSide = Callable[[], SideMap]
 
 
-def finish_side_later(job: SideHandover, timings: Timings, worker: "TrunkWorker | None") -> PendingSide:
-    """finish_side with its trunk modelling handed to `worker` (None: done here): the side map once called."""
+def finish_side_later(job: SideHandover, timings: Timings, worker: "TrunkWorker | None",
+                      here: bool = False) -> PendingSide:
+    """finish_side with its trunk modelling handed to `worker` (None: done here): the side map once called.
+    here=True: the trunks are modelled here and the posts in `worker` meanwhile (its process is idle by then:
+    an earlier side's job ran beside this side's bundle adjustment)."""
     side_map, trunk_job = finish_side_geometry(job, timings)
     if trunk_job is None:
         return lambda: side_map
-    if worker is None:
-        side_map = with_trunks(side_map, model_trunks(trunk_job), timings)
+    if worker is None or here:
+        post_model = None
+        if worker is not None and trunk_job.post_views:
+            posts_job = replace(trunk_job, points=np.zeros((0, 3), np.float32), views=[])  # what fit_posts reads
+            future = worker.submit(fit_posts, posts_job)
+            worker.start()
+            post_model = lambda: worker.result(future, fit_posts, posts_job)  # noqa: E731
+        side_map = with_trunks(side_map, model_trunks(trunk_job, post_model), timings)
         return lambda: side_map
-    future = worker.submit(trunk_job)
-    return lambda: with_trunks(side_map, worker.result(future, trunk_job), timings)
-
-
-def _warm_up() -> None:
-    """A worker's first job: nothing, once the imports are done (they take ~1 s, off the main process)."""
+    future = worker.submit(model_trunks, trunk_job)
+    return lambda: with_trunks(side_map, worker.result(future, model_trunks, trunk_job), timings)
 
 
 class TrunkWorker:
-    """A process that models a side's trunks (`model_trunks`) while the main process tracks the next side.
+    """A process that models a side's trunks (`model_trunks`) while the main process finishes the next side.
 
-    The run is mostly Python on one core; the trunk detector's thread uses part of the other while the front end
-    runs, and trunk modelling (Python too, so not a thread) takes the rest. Spawned, not forked: the main process
-    holds onnxruntime's threads. If the worker dies, the side's trunks are modelled here instead."""
+    The run is mostly Python on one core. While a side's front end runs, the trunk detector's thread takes much
+    of the other core; after it (loop detection, bundle adjustment: one core) the other core is idle. So a job
+    waits (`submit`) until the next side's front end is over (`start`), and only then is the process spawned
+    (its imports take ~1.5 s): on the 10-tree standard row, the same work run beside the front end slowed the
+    front end and the detector by as much as it saved. Spawned, not forked: the main process holds
+    onnxruntime's threads. If the worker dies, the side's trunks are modelled here instead."""
 
     def __init__(self) -> None:
-        import multiprocessing
-        from concurrent.futures import ProcessPoolExecutor
+        self._pool = None
+        self._waiting: list[tuple[Callable, TrunkJob, Future]] = []
 
-        self._pool = ProcessPoolExecutor(1, mp_context=multiprocessing.get_context("spawn"))
-        self._pool.submit(_warm_up)
+    def submit(self, fn: Callable, job: TrunkJob) -> Future:
+        """fn(job) (model_trunks, fit_posts), once `start` has sent it to the process and the process is done."""
+        future: Future = Future()
+        self._waiting.append((fn, job, future))
+        return future
 
-    def submit(self, job: TrunkJob) -> Future:
-        return self._pool.submit(model_trunks, job)
+    def start(self) -> None:
+        """Send the waiting jobs to the process (spawned now, if it is not yet)."""
+        if not self._waiting:
+            return
+        if self._pool is None:
+            import multiprocessing
+            from concurrent.futures import ProcessPoolExecutor
 
-    @staticmethod
-    def result(future: Future, job: TrunkJob) -> TrunkModel:
+            self._pool = ProcessPoolExecutor(1, mp_context=multiprocessing.get_context("spawn"))
+        for fn, job, future in self._waiting:
+            self._pool.submit(fn, job).add_done_callback(lambda f, out=future: _pass_on(f, out))
+        self._waiting = []
+
+    def result(self, future: Future, fn: Callable, job: TrunkJob):
+        """What `submit(fn, job)` gave; fn(job) run here if the process died."""
         from concurrent.futures.process import BrokenProcessPool
 
+        self.start()
         try:
             return future.result()
         except BrokenProcessPool as err:
-            log.warning("%s: the trunk worker process stopped (%s); modelling the trunks here", job.side, err)
-            return model_trunks(job)
+            log.warning("%s: the trunk worker process stopped (%s); modelling here instead", job.side, err)
+            return fn(job)
 
     def close(self) -> None:
-        self._pool.shutdown(wait=True, cancel_futures=True)
+        for _, _, future in self._waiting:
+            future.cancel()
+        self._waiting = []
+        if self._pool is not None:
+            self._pool.shutdown(wait=True, cancel_futures=True)
+
+
+def _pass_on(done: Future, out: Future) -> None:
+    """Hand a finished future's outcome on to another future."""
+    if done.cancelled():
+        out.cancel()
+    elif done.exception() is not None:
+        out.set_exception(done.exception())
+    else:
+        out.set_result(done.result())
 
 
 def reconstruct_side(seq: RGBDSequence, side: str, cfg: OrchardConfig, timings: Timings, labelled: bool = False,
@@ -484,8 +545,9 @@ def reconstruct_side(seq: RGBDSequence, side: str, cfg: OrchardConfig, timings: 
 
 
 def reconstruct_side_later(seq: RGBDSequence, side: str, cfg: OrchardConfig, timings: Timings, labelled: bool,
-                           progress: Progress | None, worker: "TrunkWorker | None") -> "PendingSide":
-    """`reconstruct_side` with the side's trunk modelling handed to `worker` (None: done here)."""
+                           progress: Progress | None, worker: "TrunkWorker | None", here: bool = False) -> "PendingSide":
+    """`reconstruct_side` with the side's trunk modelling handed to `worker` (None, or here=True: done here;
+    `worker` still starts an earlier side's job once this side's front end is over)."""
     n = int(np.sum(_side_mask(seq, side))) if labelled else len(seq)
     session = SideSession(side, seq.intrinsics, cfg, BagKeyframeImages(seq, side, labelled), bag=seq.bag)
     t0 = time.perf_counter()
@@ -494,7 +556,7 @@ def reconstruct_side_later(seq: RGBDSequence, side: str, cfg: OrchardConfig, tim
         if progress:
             progress(side, i + 1, n)
     session.seconds = time.perf_counter() - t0  # the front end's stage includes decoding the bag's images
-    return session.finish_later(timings, worker)
+    return session.finish_later(timings, worker, here)
 
 
 def reconstruct_drive(seq: RGBDSequence, cfg: OrchardConfig, timings: Timings,
@@ -527,7 +589,7 @@ def reconstruct_drive(seq: RGBDSequence, cfg: OrchardConfig, timings: Timings,
     for side, s in sessions.items():
         s.seconds = seconds[side]  # the front end's stage includes decoding the bag's images
         # a side's trunks are modelled in the worker while the next side is finished
-        pending[side] = s.finish_later(timings, worker if side != last else None)
+        pending[side] = s.finish_later(timings, worker, here=side == last)
     return {side: p() for side, p in pending.items()}
 
 
@@ -1084,7 +1146,7 @@ def _run(front: Path, back: Path | None, out: Path, cfg: OrchardConfig, progress
     labelled = back is None
     sides: dict[str, SideMap] = {}
     refused: str | None = None
-    # Two sides with trunks: the first side's trunks are modelled in a worker process while the next is tracked
+    # Two sides with trunks: the first side's trunks are modelled in a worker process while the next is finished
     worker = (TrunkWorker() if cfg.trunks.source != "off" and cfg.input.mode == "rgbd"
               and (DRIVE in seqs or len(seqs) > 1) else None)
     try:
@@ -1103,8 +1165,8 @@ def _run(front: Path, back: Path | None, out: Path, cfg: OrchardConfig, progress
                 timings.recording_duration_s += float(st[-1] - st[0]) if len(st) > 1 else 0.0
             else:
                 timings.recording_duration_s += seq.duration
-            pending[side] = reconstruct_side_later(seq, side, cfg, timings, labelled, progress,
-                                                   worker if i < len(seqs) - 1 else None)
+            pending[side] = reconstruct_side_later(seq, side, cfg, timings, labelled, progress, worker,
+                                                   here=i == len(seqs) - 1)
         for side, p in pending.items():
             sides[side] = p()
             write_side(out, sides[side])

@@ -152,7 +152,7 @@ def test_post_views_kept_as_their_masks_box_give_the_posts_of_the_whole_frames()
     posts later (model_trunks, maybe in the worker process): the landmarks must be those of the whole frames."""
     from orchard_mapping.config import load_config
     from orchard_mapping.core.types import ImagePatch, mask_bounds
-    from orchard_mapping.pipeline import PostView, TrunkJob, model_trunks
+    from orchard_mapping.pipeline import PostView, TrunkJob, TrunkWorker, fit_posts, model_trunks
 
     cfg = load_config()
     rng = np.random.default_rng(5)
@@ -171,3 +171,13 @@ def test_post_views_kept_as_their_masks_box_give_the_posts_of_the_whole_frames()
     assert kept[0].radius_m == whole[0].radius_m and abs(kept[0].radius_m - RADIUS) < 0.01
     assert np.array_equal(kept[0].place, whole[0].place)
     assert [o.keyframe for o in kept[0].observations] == [o.keyframe for o in whole[0].observations]
+    # the last side's posts are fitted in the worker process while its trunks are modelled here: the same posts
+    worker = TrunkWorker()
+    try:
+        future = worker.submit(fit_posts, job)
+        worker.start()
+        there = model_trunks(job, lambda: worker.result(future, fit_posts, job)).posts
+    finally:
+        worker.close()
+    assert len(there) == 1 and there[0].radius_m == whole[0].radius_m
+    assert np.array_equal(there[0].place, whole[0].place)

@@ -164,7 +164,7 @@ def test_a_sides_trunks_modelled_in_the_worker_process_are_the_ones_modelled_her
     here = model_trunks(job)
     worker = TrunkWorker()
     try:
-        there = TrunkWorker.result(worker.submit(job), job)
+        there = worker.result(worker.submit(model_trunks, job), model_trunks, job)
     finally:
         worker.close()
     assert len(here.trunks) == len(there.trunks) == 1
