@@ -36,7 +36,8 @@ from orchard_mapping.core.semantic_ba import (HeightAnchor, SemanticBAResult, Si
 from orchard_mapping.core.sidemap import FrontEndResult, LoopClosure, SideMap
 from orchard_mapping.core.sides import UTurnSides
 from orchard_mapping.core.cylinder import Cylinder
-from orchard_mapping.core.trunks import TrunkLandmark, TrunkView, build_trunk_landmarks, ground_around_trunk
+from orchard_mapping.core.trunks import (TrunkLandmark, TrunkParams, TrunkView, build_trunk_landmarks,
+                                        ground_around_trunk)
 from orchard_mapping.core.detection import CLASS_POST, CLASS_TRUNK
 from orchard_mapping.core.posts import (build_post_landmarks, fit_post_view, post_shapes,
                                        separate_trunks_from_posts)
@@ -495,6 +496,11 @@ class TrunkWorker:
         future: Future = Future()
         self._waiting.append((fn, job, future))
         return future
+
+    @property
+    def spawned(self) -> bool:
+        """Whether the process is up (spawning one costs ~1.5 s of imports before it can help)."""
+        return self._pool is not None
 
     def start(self) -> None:
         """Send the waiting jobs to the process (spawned now, if it is not yet)."""
@@ -959,11 +965,37 @@ def _two_side_ground(clouds: dict[str, SlabIndex], Tt: np.ndarray, foot: np.ndar
     return ground_around_trunk(pts, o_bottom, Cylinder(z, Tt[:3, 3], radius), cfg.ground, rng)
 
 
+@dataclass(frozen=True)
+class BandPair:
+    """What eq. objectCylinderFB reads of one tree's two trunk landmarks (it pickles: the trunk worker fits
+    some trees' while the main process fits the others')."""
+
+    bands: list[tuple]  # per side (band points (N, 3), normals (N, 3), band views, the side's band cylinder)
+    intrinsics: CameraIntrinsics
+    params: TrunkParams
+    seed: tuple[int, ...]
+
+
+def two_side_diameter(job: BandPair) -> float | None:
+    """m: the diameter of one radius fitted to both sides' bands (eq. objectCylinderFB); None if the fit failed."""
+    tp = job.params
+    try:
+        cyls = fit_cylinders_shared_radius(
+            job.bands, job.intrinsics, np.random.default_rng(job.seed), threshold_m=tp.ransac_threshold_m,
+            radius_range_m=(tp.radius_min_m, tp.radius_max_m), sigma_3d_m=tp.sigma_3d_m, sigma_px=tp.sigma_px,
+            lam=tp.lam, huber_k=tp.huber_k, edge_snap_px=tp.edge_snap_px)
+    except CylinderError:
+        return None
+    return 2.0 * cyls[0].radius
+
+
 def two_side_trees(m: MergeOutcome, sides: dict[str, SideMap], cfg: OrchardConfig,
-                   clouds: dict[str, np.ndarray] | None = None) -> list[ResultTree]:
+                   clouds: dict[str, np.ndarray] | None = None, worker: "TrunkWorker | None" = None
+                   ) -> list[ResultTree]:
     """Every trunk of either side as a tree in map: paired ones with the two-side diameter of eq.
     objectCylinderFB (one radius from both sides' band points and views) and the foot on the local
-    ground fitted to both sides' points, the others flagged one-sided. clouds: clouds_in_map(m, sides)."""
+    ground fitted to both sides' points, the others flagged one-sided. clouds: clouds_in_map(m, sides).
+    worker: fits every other tree's two-side diameter meanwhile (the other core is idle in the merge)."""
     tp = cfg.trunks
     if clouds is None and m.sba is not None:
         clouds = clouds_in_map(m, sides)
@@ -971,13 +1003,24 @@ def two_side_trees(m: MergeOutcome, sides: dict[str, SideMap], cfg: OrchardConfi
     by = {side: {t.id: t for t in sides[side].trunks} for side in ("front", "back")}
     T_fb = m.T_front_back
     intr = sides["front"].intrinsics
-    rng = np.random.default_rng(cfg.seed)
+    worker = worker if worker is not None and worker.spawned else None
+    # each tree's draws from a generator of its own, so that it does not matter which process fits it
+    band_pairs = {k: BandPair([(f.band_points, f.band_normals, f.band_views, f.band.cylinder),
+                               (b.band_points, b.band_normals, b.band_views, b.band.cylinder)], intr, tp,
+                              (cfg.seed, k, 1))
+                  for k, (f, b) in enumerate((by["front"][i], by["back"][j]) for i, j in m.pairs)
+                  if f.band is not None and b.band is not None}
+    elsewhere = {k: worker.submit(two_side_diameter, job) for n, (k, job) in enumerate(band_pairs.items())
+                 if n % 2} if worker is not None else {}
+    if worker is not None:
+        worker.start()
     trees: list[ResultTree] = []
     paired = {"front": set(), "back": set()}
     for k, (i, j) in enumerate(m.pairs):
         f, b = by["front"][i], by["back"][j]
         paired["front"].add(i)
         paired["back"].add(j)
+        rng = np.random.default_rng((cfg.seed, k))
         if m.sba is not None and m.shapes is not None:
             # The shared trunk after the semantic BA, down its axis to the ground: each side's base placed
             # by that side's adjusted camera. A local ground (within 0.5 m) is the best evidence of the
@@ -1003,16 +1046,10 @@ def two_side_trees(m: MergeOutcome, sides: dict[str, SideMap], cfg: OrchardConfi
         else:
             pos = 0.5 * (f.base + T_fb[:3, :3] @ b.base + T_fb[:3, 3])
         diameter, flags = None, []
-        if f.band is not None and b.band is not None:
-            try:
-                cyls = fit_cylinders_shared_radius(
-                    [(f.band_points, f.band_normals, f.band_views, f.band.cylinder),
-                     (b.band_points, b.band_normals, b.band_views, b.band.cylinder)], intr, rng,
-                    threshold_m=tp.ransac_threshold_m, radius_range_m=(tp.radius_min_m, tp.radius_max_m),
-                    sigma_3d_m=tp.sigma_3d_m, sigma_px=tp.sigma_px, lam=tp.lam, huber_k=tp.huber_k,
-                    edge_snap_px=tp.edge_snap_px)
-                diameter = 2.0 * cyls[0].radius
-            except CylinderError:
+        if k in band_pairs:
+            diameter = (worker.result(elsewhere[k], two_side_diameter, band_pairs[k]) if k in elsewhere
+                        else two_side_diameter(band_pairs[k]))
+            if diameter is None:
                 flags.append("two_side_fit_failed")
         if diameter is None:
             one = [t.diameter_m for t in (f, b) if t.diameter_m is not None]
@@ -1039,13 +1076,14 @@ def _carried_flags(*trunks: TrunkLandmark) -> tuple[str, ...]:
     return (DETECTOR_UNAVAILABLE,) if any(DETECTOR_UNAVAILABLE in t.flags for t in trunks) else ()
 
 
-def merge_to_trees(sides: dict[str, SideMap], cfg: OrchardConfig
+def merge_to_trees(sides: dict[str, SideMap], cfg: OrchardConfig, worker: "TrunkWorker | None" = None
                    ) -> tuple[MergeOutcome, dict[str, np.ndarray], list[ResultTree]]:
     """The two sides merged (merge_sides), their clouds carried into map, and the trees: what `run` and the
-    side merger node write. AlignmentError (MergeRefusedError's base) when the merge is refused."""
+    side merger node write. AlignmentError (MergeRefusedError's base) when the merge is refused. worker:
+    fits half the trees' two-side diameters (two_side_trees)."""
     merged = merge_sides(sides["front"], sides["back"], cfg)
     clouds = clouds_in_map(merged, sides)
-    trees = two_side_trees(merged, sides, cfg, clouds)
+    trees = two_side_trees(merged, sides, cfg, clouds, worker)
     log.info("sides merged (%s) on %d trunk pairs%s", merged.method, len(merged.pairs),
              ": " + "; ".join(merged.alignment.log) if merged.alignment is not None else "")
     return merged, clouds, trees
@@ -1170,22 +1208,22 @@ def _run(front: Path, back: Path | None, out: Path, cfg: OrchardConfig, progress
         for side, p in pending.items():
             sides[side] = p()
             write_side(out, sides[side])
+        if cfg.trunks.source != "off" and cfg.input.mode == "rgbd":
+            write_landmarks(out, sides, cfg)
+            if cfg.merge.method != "off" and set(sides) == {"front", "back"}:
+                t0 = time.perf_counter()
+                try:
+                    merged, clouds, trees = merge_to_trees(sides, cfg, worker)
+                except AlignmentError as err:
+                    log.warning("side merge refused: %s (no side_merge.json written)", err)
+                    refused = str(err)
+                else:
+                    write_merge(out, merged, sides, clouds)
+                    write_trees(out, trees, frame="map")
+                timings.add("merge", time.perf_counter() - t0)
     finally:
         if worker is not None:
             worker.close()
-    if cfg.trunks.source != "off" and cfg.input.mode == "rgbd":
-        write_landmarks(out, sides, cfg)
-        if cfg.merge.method != "off" and set(sides) == {"front", "back"}:
-            t0 = time.perf_counter()
-            try:
-                merged, clouds, trees = merge_to_trees(sides, cfg)
-            except AlignmentError as err:
-                log.warning("side merge refused: %s (no side_merge.json written)", err)
-                refused = str(err)
-            else:
-                write_merge(out, merged, sides, clouds)
-                write_trees(out, trees, frame="map")
-            timings.add("merge", time.perf_counter() - t0)
     timings.wall_s = time.perf_counter() - t_start
     write_timings(out / "timings.json", timings.stages, frames=timings.frames,
                   recording_duration_s=timings.recording_duration_s, wall_s=timings.wall_s)
