@@ -1139,8 +1139,13 @@ def write_merge(out: Path, m: MergeOutcome, sides: dict[str, SideMap],
 
 
 def run(front: str | Path, back: str | Path | None, out: str | Path, cfg: OrchardConfig,
-        progress: Progress | None = None) -> RunResult:
+        progress: Progress | None = None, trunk_worker: bool = False) -> RunResult:
     """Reconstruct each side and write the result folder.
+
+    trunk_worker: model the first side's trunks, the last side's posts and half the merge's two-side fits in
+    a spawned worker process (TrunkWorker; same results). `orchard-map run` does. A spawned process imports the
+    caller's main module again: a script that calls this with trunk_worker=True needs the
+    `if __name__ == "__main__":` guard that Python's multiprocessing asks for.
 
     Everything is written into a staging folder first and moved into `out` only when the whole run
     succeeded: a failed run leaves no half-written result (earlier results in `out` stay as they were).
@@ -1150,7 +1155,7 @@ def run(front: str | Path, back: str | Path | None, out: str | Path, cfg: Orchar
     out.mkdir(parents=True, exist_ok=True)
     stage = Path(tempfile.mkdtemp(prefix=".staging-", dir=out))
     try:
-        result = _run(Path(front), Path(back) if back is not None else None, stage, cfg, progress)
+        result = _run(Path(front), Path(back) if back is not None else None, stage, cfg, progress, trunk_worker)
         for f in sorted(stage.iterdir()):
             os.replace(f, out / f.name)
     except BaseException:
@@ -1176,7 +1181,8 @@ def run(front: str | Path, back: str | Path | None, out: str | Path, cfg: Orchar
     return RunResult(out, result.sides, result.timings, result.merge_refused)
 
 
-def _run(front: Path, back: Path | None, out: Path, cfg: OrchardConfig, progress: Progress | None) -> RunResult:
+def _run(front: Path, back: Path | None, out: Path, cfg: OrchardConfig, progress: Progress | None,
+         trunk_worker: bool) -> RunResult:
     timings = Timings()
     t0 = t_start = time.perf_counter()
     seqs = open_sides(front, back, cfg)
@@ -1185,7 +1191,7 @@ def _run(front: Path, back: Path | None, out: Path, cfg: OrchardConfig, progress
     sides: dict[str, SideMap] = {}
     refused: str | None = None
     # Two sides with trunks: the first side's trunks are modelled in a worker process while the next is finished
-    worker = (TrunkWorker() if cfg.trunks.source != "off" and cfg.input.mode == "rgbd"
+    worker = (TrunkWorker() if trunk_worker and cfg.trunks.source != "off" and cfg.input.mode == "rgbd"
               and (DRIVE in seqs or len(seqs) > 1) else None)
     try:
         if DRIVE in seqs:
