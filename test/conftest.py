@@ -98,9 +98,10 @@ def loop_row(tmp_path_factory, seed_offset):
     sc = load_scenario("loop", {"row.n_trees": 2, "camera.rate_hz": 15, "masks_every": 1})
     sim = simulate(sc, 11 + seed_offset, root / "loop").out_dir
     out = root / "result"
+    # with the trunk worker process, as `orchard-map run` does: the drive's sides finish one after the other
     run(sim / "loop", None, out, load_config(overrides={
         "input": {"side_source": "trajectory"},
-        "trunks": {"source": "masks", "masks_dir": str(sim / "masks" / "loop")}}))
+        "trunks": {"source": "masks", "masks_dir": str(sim / "masks" / "loop")}}), trunk_worker=True)
     return sim, out
 
 
