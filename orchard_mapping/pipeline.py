@@ -351,7 +351,7 @@ def finish_side_geometry(job: SideHandover, timings: Timings) -> tuple[SideMap, 
 @dataclass(frozen=True)
 class TrunkJob:
     """What modelling one side's trunks and posts needs once its cloud is fused. It pickles: `orchard-map run`
-    models a side's trunks in a worker process (TrunkWorker) while the next side is tracked."""
+    models a side's trunks in a worker process (TrunkWorker) while the next side is finished."""
 
     side: str
     points: np.ndarray  # (P, 3) float32 fused cloud, odom
@@ -449,8 +449,7 @@ def with_trunks(side_map: SideMap, model: TrunkModel, timings: Timings) -> SideM
 def finish_side(job: SideHandover, timings: Timings) -> SideMap:
     """Loop detection, pose graph, bundle adjustment, TSDF fusion (cleaning the keyframes with a trunk
     detection, with trunks.view_depth "cleaned"), trunk cylinders and local grounds: the side map."""
-    side_map, trunk_job = finish_side_geometry(job, timings)
-    return side_map if trunk_job is None else with_trunks(side_map, model_trunks(trunk_job), timings)
+    return finish_side_later(job, timings, None)()
 
 
 PendingSide = Callable[[], SideMap]
@@ -489,10 +488,11 @@ class TrunkWorker:
 
     def __init__(self) -> None:
         self._pool = None
-        self._waiting: list[tuple[Callable, TrunkJob, Future]] = []
+        self._waiting: list[tuple[Callable, TrunkJob | BandPair, Future]] = []
 
-    def submit(self, fn: Callable, job: TrunkJob) -> Future:
-        """fn(job) (model_trunks, fit_posts), once `start` has sent it to the process and the process is done."""
+    def submit(self, fn: Callable, job: "TrunkJob | BandPair") -> Future:
+        """fn(job) (model_trunks, fit_posts, two_side_diameter), once `start` has sent it to the process and the
+        process is done with it."""
         future: Future = Future()
         self._waiting.append((fn, job, future))
         return future
@@ -515,7 +515,7 @@ class TrunkWorker:
             self._pool.submit(fn, job).add_done_callback(lambda f, out=future: _pass_on(f, out))
         self._waiting = []
 
-    def result(self, future: Future, fn: Callable, job: TrunkJob):
+    def result(self, future: Future, fn: Callable, job: "TrunkJob | BandPair"):
         """What `submit(fn, job)` gave; fn(job) run here if the process died."""
         from concurrent.futures.process import BrokenProcessPool
 
@@ -523,7 +523,7 @@ class TrunkWorker:
         try:
             return future.result()
         except BrokenProcessPool as err:
-            log.warning("%s: the trunk worker process stopped (%s); modelling here instead", job.side, err)
+            log.warning("the trunk worker process stopped (%s); %s runs here instead", err, fn.__name__)
             return fn(job)
 
     def close(self) -> None:
@@ -697,12 +697,12 @@ class PostView:
 
 class TrunkViews:
     """Takes the detections made beside the front end (`EarlyDetections`) as fusion comes to their keyframes
-    (`select`), fits the posts they found, and keeps what trunk modelling and the two-side diameter need of
-    each keyframe with a trunk detection (`__call__`): pose, detections, and depth and masks cropped around
-    the detections (ImagePatch). The depth is the raw one (trunks.view_depth "raw", the default), or the
-    cleaned one ("cleaned"): then fusion cleans only these keyframes (a third to a half of them on the
-    simulated rows; cleaning was most of fusion's time). Frames are dropped as they go: memory grows with
-    the trunks seen, not with the row's frames."""
+    (`select`), keeps each post detection with the raw depth around it (fitted in `fit_posts`), and keeps what
+    trunk modelling and the two-side diameter need of each keyframe with a trunk detection (`__call__`): pose,
+    detections, and depth and masks cropped around the detections (ImagePatch). The depth is the raw one
+    (trunks.view_depth "raw", the default), or the cleaned one ("cleaned"): then fusion cleans only these
+    keyframes (a third to a half of them on the simulated rows; cleaning was most of fusion's time). Frames are
+    dropped as they go: memory grows with the trunks seen, not with the row's frames."""
 
     def __init__(self, cfg: OrchardConfig, stamps: np.ndarray, poses: np.ndarray, intr: CameraIntrinsics,
                  detections: dict[int, list | None], frame_index: list[int]) -> None:

@@ -293,9 +293,9 @@ def train_detector(
     from orchard_mapping.errors import OrchardMappingError
 
     try:
-        folders = _coco_folders(data, out.parent / ".coco_cache", every)
         if min_size < 64 or any(t < 64 for t in train_size):
             raise ValueError(f"--min-size and --train-size must be at least 64 px, got {min_size} and {train_size}")
+        folders = _coco_folders(data, out.parent / ".coco_cache", every)
         settings = TrainSettings(iterations=iterations, seed=seed, threads=threads,
                                  lr_scale=lr_scale if init is not None else 1.0, min_size=min_size,
                                  max_size=math.ceil(min_size * 4 / 3), train_sizes=tuple(train_size))
