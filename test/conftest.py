@@ -23,6 +23,8 @@ fragile there (and is not acceptable: make the algorithm more robust, never only
 import json
 import os
 import random
+import shutil
+from contextlib import contextmanager
 
 os.environ["ROS_AUTOMATIC_DISCOVERY_RANGE"] = "LOCALHOST"
 
@@ -56,6 +58,64 @@ def switches() -> str:
 def pytest_configure(config):
     config.addinivalue_line("markers", "accuracy: checks accuracy against the simulator's truth "
                                        "(repeated by make test-portable)")
+
+
+@pytest.fixture(scope="session", autouse=True)
+def _prune_ended_sessions(tmp_path_factory) -> None:
+    """Remove the temporary folders of earlier test sessions that have ended before this one writes its own.
+    pytest keeps the folders of the last sessions and prunes older ones only at exit; a full run writes
+    ~4 GB of simulated rows, and on a machine that runs the suite again and again (CI) the kept folders
+    filled its disk during the next run ("No space left on device" in stop 37's CI). A folder whose
+    session is still running (its `.lock` names a live process) is left alone."""
+    base = tmp_path_factory.getbasetemp()
+    if base.parent.name != f"pytest-of-{_user()}":
+        return  # --basetemp given: pytest empties that folder itself
+    for old in base.parent.glob("pytest-*"):
+        if old == base or not old.name[len("pytest-"):].isdigit() or old.is_symlink():
+            continue
+        try:
+            pid = int((old / ".lock").read_text())
+        except (OSError, ValueError):
+            pid = None  # no lock: the session ended (or never took one)
+        if pid is not None and _alive(pid):
+            continue
+        shutil.rmtree(old, ignore_errors=True)
+
+
+def _user() -> str:
+    import getpass
+
+    try:
+        return getpass.getuser()
+    except (KeyError, OSError):
+        return "unknown"
+
+
+def _alive(pid: int) -> bool:
+    try:
+        os.kill(pid, 0)
+    except ProcessLookupError:
+        return False
+    except PermissionError:
+        return True
+    return True
+
+
+@pytest.fixture(scope="session")
+def scratch(tmp_path_factory):
+    """`with scratch(name) as folder:` a folder for a module- or session-scoped fixture's simulated row,
+    removed when the fixture is torn down (pytest otherwise keeps every row, ~0.35 GB a side, to the end
+    of the session)."""
+
+    @contextmanager
+    def make(name: str):
+        path = tmp_path_factory.mktemp(name)
+        try:
+            yield path
+        finally:
+            shutil.rmtree(path, ignore_errors=True)
+
+    return make
 
 
 @pytest.fixture(scope="session")

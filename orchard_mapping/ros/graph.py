@@ -68,8 +68,11 @@ def graph_specs(bags: list[Path], *, rate: float = 1.0, start_s: float = 0.0, lo
         specs.append(NodeSpec("rgbd_odometry", "rgbd_odometry", tuple(odometry), ends_graph=not loop and not two,
                               finite=two))
         # the odometry node's own readers, not the recorder's, must have matched before the first frame
+        # and the trunk detector is up: the odometry node asks it about the first keyframes, and gives up on a
+        # detector not there within 15 s (a test row's first tree was flagged `detector_unavailable_nearby`
+        # when the nodes' imports shared 2 cores with other work and the detector started last)
         player = [str(b) for b in bags] + ["--rate", str(rate), "--start", str(start_s),
-                                           "--wait-reader", "rgbd_odometry"]
+                                           "--wait-reader", "rgbd_odometry", "--wait-node", "trunk_detector"]
         if two:  # the side merger and the trait reporter have started (imported the core) before the first frame
             player += ["--wait-node", "side_merger", "--wait-node", "trait_reporter"]
         player += [a for s in (sides or []) for a in ("--side", s)]

@@ -67,12 +67,13 @@ def _peak(bag: Path, masks: Path) -> dict:
 
 
 @pytest.fixture(scope="module")
-def rows(tmp_path_factory) -> dict[int, dict]:
+def rows(scratch) -> dict[int, dict]:
     out = {}
     for n in (4, 8):
         sc = load_scenario("single_pass", {"row.n_trees": n, "camera.rate_hz": 10, "masks_every": 1})
-        sim = simulate(sc, 3, tmp_path_factory.mktemp(f"mem{n}") / "sim", record=("front",)).out_dir
-        out[n] = _peak(sim / "front", sim / "masks")
+        with scratch(f"mem{n}") as root:
+            sim = simulate(sc, 3, root / "sim", record=("front",)).out_dir
+            out[n] = _peak(sim / "front", sim / "masks")
     return out
 
 

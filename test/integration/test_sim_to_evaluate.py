@@ -10,6 +10,7 @@ import json
 import os
 import subprocess
 import sys
+from collections.abc import Iterator
 from pathlib import Path
 
 import numpy as np
@@ -25,12 +26,13 @@ runner = CliRunner()
 
 
 @pytest.fixture(scope="module")
-def sim_dir(tmp_path_factory) -> Path:
-    out = tmp_path_factory.mktemp("sim") / "row"
-    res = runner.invoke(app, ["simulate", "--scenario", "standard", "--trees", "3", "--seed", "3", "--out", str(out),
-                              "--set", "camera.rate_hz=2", "--set", "masks_every=0"])
-    assert res.exit_code == 0, res.output
-    return out
+def sim_dir(scratch) -> Iterator[Path]:
+    with scratch("sim") as root:
+        out = root / "row"
+        res = runner.invoke(app, ["simulate", "--scenario", "standard", "--trees", "3", "--seed", "3", "--out",
+                                  str(out), "--set", "camera.rate_hz=2", "--set", "masks_every=0"])
+        assert res.exit_code == 0, res.output
+        yield out
 
 
 def _perfect_result(truth: dict, out: Path, *, diam_mm: float = 0.0, height_cm: float = 0.0,

@@ -11,6 +11,7 @@ from __future__ import annotations
 
 import json
 import shutil
+from collections.abc import Iterator
 from pathlib import Path
 
 import numpy as np
@@ -66,21 +67,22 @@ _MODEL_SIDES: dict[str, SideMap] = {}  # the side maps of reconstructed_model, f
 
 
 @pytest.fixture(scope="module")
-def reconstructed_model(reconstructed, tmp_path_factory) -> tuple[Path, Path]:
+def reconstructed_model(reconstructed, scratch) -> Iterator[tuple[Path, Path]]:
     """The same row through `run` with the default configuration: trunks from the shipped detector."""
     sim, _ = reconstructed
-    out = tmp_path_factory.mktemp("standard_model") / "result"
-    _MODEL_SIDES.update(run(sim / "front", sim / "back", out, load_config()).sides)
-    return sim, out
+    with scratch("standard_model") as root:
+        out = root / "result"
+        _MODEL_SIDES.update(run(sim / "front", sim / "back", out, load_config()).sides)
+        yield sim, out
 
 
 @pytest.fixture(scope="module")
-def wind_front(tmp_path_factory, seed_offset) -> tuple[Path, SideMap]:
+def wind_front(scratch, seed_offset) -> Iterator[tuple[Path, SideMap]]:
     """The front side of the wind row (leaves and fruit move) through `reconstruct_side` only (cheaper)."""
-    root = tmp_path_factory.mktemp("wind")
-    sim = _simulate(root, "wind", SEED + seed_offset, record=("front",))
-    seq = read_rgbd(sim / "front")
-    return sim, reconstruct_side(seq, "front", load_config(), Timings())
+    with scratch("wind") as root:
+        sim = _simulate(root, "wind", SEED + seed_offset, record=("front",))
+        seq = read_rgbd(sim / "front")
+        yield sim, reconstruct_side(seq, "front", load_config(), Timings())
 
 
 def _true_trajectory(sim: Path, side: str) -> StampedTrajectory:
@@ -183,24 +185,24 @@ HAND_HELD = (("tilted", "front"), ("handheld_walk", "back"))
 
 
 @pytest.fixture(scope="module", params=HAND_HELD, ids=[name for name, _ in HAND_HELD])
-def hand_held(request, tmp_path_factory, seed_offset) -> tuple[str, str, Path, SideMap, list[str]]:
+def hand_held(request, scratch, seed_offset) -> Iterator[tuple[str, str, Path, SideMap, list[str]]]:
     """One side of a hand-held row through `reconstruct_side` (default configuration, the shipped detector);
     the front end's warnings (losses, relocalisations)."""
     import logging
 
     name, side = request.param
-    root = tmp_path_factory.mktemp(name)
-    sim = _simulate(root, name, SEED + seed_offset, record=(side,))
-    records: list[str] = []
-    handler = logging.Handler()
-    handler.emit = lambda rec: records.append(rec.getMessage())  # type: ignore[method-assign]
-    logger = logging.getLogger("orchard_mapping.pipeline")
-    logger.addHandler(handler)
-    try:
-        sm = reconstruct_side(read_rgbd(sim / side), side, load_config(), Timings())
-    finally:
-        logger.removeHandler(handler)
-    return name, side, sim, sm, records
+    with scratch(name) as root:
+        sim = _simulate(root, name, SEED + seed_offset, record=(side,))
+        records: list[str] = []
+        handler = logging.Handler()
+        handler.emit = lambda rec: records.append(rec.getMessage())  # type: ignore[method-assign]
+        logger = logging.getLogger("orchard_mapping.pipeline")
+        logger.addHandler(handler)
+        try:
+            sm = reconstruct_side(read_rgbd(sim / side), side, load_config(), Timings())
+        finally:
+            logger.removeHandler(handler)
+        yield name, side, sim, sm, records
 
 
 @pytest.mark.accuracy
@@ -417,10 +419,11 @@ def test_trunk_diameters_of_each_side_within_goals(reconstructed, accuracy):
 
 
 @pytest.fixture(scope="module")
-def short_sim(tmp_path_factory) -> Path:
+def short_sim(scratch) -> Iterator[Path]:
     sc = load_scenario("single_pass", {"row.n_trees": 1, "camera.rate_hz": 15, "masks_every": 0,
                                        "row.margin_m": 0.6})
-    return simulate(sc, 5, tmp_path_factory.mktemp("short") / "sim").out_dir
+    with scratch("short") as root:
+        yield simulate(sc, 5, root / "sim").out_dir
 
 
 def _rewrite(src: Path, dst: Path, *, blank: range = range(0), depth_zero: bool = False,

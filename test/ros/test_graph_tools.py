@@ -116,3 +116,23 @@ def test_supervisor_stops_the_graph_with_exit_1_when_a_node_dies_for_good(tmp_pa
     text = log.getvalue()
     assert "player died (exit code 2)" in text and "no such file or folder" in text, text
     assert not list(tmp_path.glob(".rec.*"))  # the stopped recorder left no half-written bag behind
+
+
+@pytest.mark.parametrize("bags, drive", [(["front", "back"], False), (["front"], False), (["drive"], True)])
+def test_the_player_waits_for_every_node_asked_during_the_first_frames(bags, drive):
+    """The first frame is sent only once the odometry node reads the camera and the nodes it asks (the trunk
+    detector) or feeds at once are up: a node still importing the core when the frames begin would leave the
+    first keyframes without detections, and their trunks flagged, on a loaded machine."""
+    from orchard_mapping.ros.graph import graph_specs
+
+    specs = {s.name: s for s in graph_specs([Path(b) for b in bags], drive=drive)}
+    args = specs["player"].args
+    waited = {args[i + 1] for i, a in enumerate(args) if a == "--wait-node"}
+    readers = {args[i + 1] for i, a in enumerate(args) if a == "--wait-reader"}
+    assert readers == {"rgbd_odometry"}
+    assert "trunk_detector" in specs and "trunk_detector" in waited
+    # the merge's nodes exist only where two sides are merged, and are then waited for too
+    assert waited - {"trunk_detector"} == ({"side_merger", "trait_reporter"} & set(specs))
+    # every node waited for starts before the player
+    names = list(specs)
+    assert all(names.index(n) < names.index("player") for n in waited | readers)
