@@ -59,7 +59,7 @@ def graph_specs(bags: list[Path], *, rate: float = 1.0, start_s: float = 0.0, lo
             sides = sides or (["front", "back"][: len(bags)] if len(bags) <= 2 else None)
         two = drive or sides is None or {"front", "back"} <= set(sides)  # a merge to wait for
         odometry += ["-p", f"exit_after_sides:={(2 if drive else len(bags)) if not loop else 0}",
-                     "-p", "replayed_camera:=true"]
+                     "-p", "replayed_camera:=true", "-p", "detector_timeout_s:=60.0"]
         if two:
             specs.append(NodeSpec("side_merger", "side_merger", (*ros_args, *out_arg, "-p", "exit_on_refusal:=true")))
             specs.append(NodeSpec("trait_reporter", "trait_reporter",

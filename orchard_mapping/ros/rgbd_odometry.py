@@ -104,11 +104,16 @@ class RGBDOdometryNode(Node):
         self.declare_parameter("replayed_camera", False)
         # "node": the trunk_detector node answers (the graph); "local": the configured detector in this process
         self.declare_parameter("detector", "local")
+        # s to wait for the trunk_detector node's answer before the keyframe goes without detections (its trunks
+        # are then flagged). Live, a late answer is no use; a replay must give the trees of `orchard-map run`
+        # however loaded the machine: with 5 s, 1 request of the 2-tree drive went unanswered in 2 of 5 test runs
+        # with a simulation or a detector training on the same 2 cores (`orchard-map launch --bag` sets 60)
+        self.declare_parameter("detector_timeout_s", 5.0)
         self._detectors: dict[str, RemoteDetector] = {}
         cfg = self.params.config
         topics = cfg.input.topics
         self.counts = _Counts()
-        self._colour: deque = deque()  # (stamp ns, Image) waiting for their depth partner
+        self._colour: deque = deque()  # (stamp ns, Image) waiting for their depth partner; (None, side): a side change
         self._last_colour_ns: int | None = None
         self._steps: deque = deque(maxlen=30)  # ns between consecutive colour stamps
         self._depth: deque = deque(maxlen=64)  # (stamp ns, Image), recent
@@ -180,10 +185,14 @@ class RGBDOdometryNode(Node):
         if side != SIDE_END and side not in SIDES:
             self.get_logger().error(f"side topic: {side!r} is not one of {SIDES + (SIDE_END,)}; ignored")
             return
-        self._pair(flush=True)
         self._last_colour_ns = None  # a new recording: its stamps need not follow the last one's
         self._steps.clear()
-        self._work.put(("side", side))
+        # The change waits behind the colour images that came before it, which still wait for their depth: a side
+        # message inside a bag (a drive's U-turn) is published with the frame before it, and under load that
+        # frame's depth image (1.2 MB) came after it (the frame was dropped in 2 of 5 test runs on a loaded
+        # machine when the side message flushed the pairing). The end of a recording flushes: no depth follows.
+        self._colour.append((None, side))
+        self._pair(flush=side == SIDE_END)
 
     def _on_player(self, msg: String) -> None:
         """A bag player's count of what it published: the colour images this node never received are lost."""
@@ -231,8 +240,14 @@ class RGBDOdometryNode(Node):
         """Give each colour image the depth image nearest in stamp within input.max_pair_dt_s (ties: the
         earlier), as `read_rgbd` pairs a bag's; wait while a nearer depth may still come."""
         tol = round(self.params.config.input.max_pair_dt_s * 1e9)
-        while self._colour and (self._info is not None or flush):
+        while self._colour:
             c_ns, colour = self._colour[0]
+            if c_ns is None:  # a side change (_on_side), behind every colour image that came before it
+                self._colour.popleft()
+                self._work.put(("side", colour))
+                continue
+            if self._info is None and not flush:
+                return
             near = [(abs(d_ns - c_ns), d_ns, d) for d_ns, d in self._depth if abs(d_ns - c_ns) <= tol]
             later = any(d_ns >= c_ns + tol for d_ns, _ in self._depth)
             if not (flush or later or any(dt == 0 for dt, _, _ in near)):
@@ -240,6 +255,11 @@ class RGBDOdometryNode(Node):
             self._colour.popleft()
             if not near:
                 self.counts.unpaired += 1
+                self.get_logger().warning(
+                    f"colour image at stamp {c_ns / 1e9:.3f} s: no depth image within {tol / 1e9:.3f} s "
+                    f"({'at a side change or the end' if flush else 'a later depth came first'}; depth stamps "
+                    f"held {self._depth[0][0] / 1e9 if self._depth else float('nan'):.3f}-"
+                    f"{self._depth[-1][0] / 1e9 if self._depth else float('nan'):.3f} s): frame dropped")
                 continue
             _, _, depth = min(near, key=lambda x: (x[0], x[1]))
             self.counts.paired += 1
@@ -309,7 +329,8 @@ class RGBDOdometryNode(Node):
         self.get_logger().info(f"{side} side: tracking")
         detect = None
         if self.get_parameter("detector").value == "node":
-            detect = self._detectors.setdefault(side, RemoteDetector(self, side, cfg.frames.camera))
+            detect = self._detectors.setdefault(side, RemoteDetector(
+                self, side, cfg.frames.camera, timeout_s=float(self.get_parameter("detector_timeout_s").value)))
         return SideSession(side, intr, cfg, SpooledKeyframeImages(spool), bag=f"{side} side (camera topics)",
                            detect=detect)
 

@@ -119,7 +119,7 @@ def test_supervisor_stops_the_graph_with_exit_1_when_a_node_dies_for_good(tmp_pa
 
 
 @pytest.mark.parametrize("bags, drive", [(["front", "back"], False), (["front"], False), (["drive"], True)])
-def test_the_player_waits_for_every_node_asked_during_the_first_frames(bags, drive):
+def test_a_replay_waits_for_every_node_asked_during_the_first_frames_and_for_the_detector(bags, drive):
     """The first frame is sent only once the odometry node reads the camera and the nodes it asks (the trunk
     detector) or feeds at once are up: a node still importing the core when the frames begin would leave the
     first keyframes without detections, and their trunks flagged, on a loaded machine."""
@@ -133,6 +133,8 @@ def test_the_player_waits_for_every_node_asked_during_the_first_frames(bags, dri
     assert "trunk_detector" in specs and "trunk_detector" in waited
     # the merge's nodes exist only where two sides are merged, and are then waited for too
     assert waited - {"trunk_detector"} == ({"side_merger", "trait_reporter"} & set(specs))
+    # a replay waits for the detector's answers long enough to give the offline trees on a loaded machine
+    assert "detector_timeout_s:=60.0" in specs["rgbd_odometry"].args
     # every node waited for starts before the player
     names = list(specs)
     assert all(names.index(n) < names.index("player") for n in waited | readers)
