@@ -68,9 +68,9 @@ def graph_specs(bags: list[Path], *, rate: float = 1.0, start_s: float = 0.0, lo
         specs.append(NodeSpec("rgbd_odometry", "rgbd_odometry", tuple(odometry), ends_graph=not loop and not two,
                               finite=two))
         # the odometry node's own readers, not the recorder's, must have matched before the first frame
-        # and the trunk detector is up: the odometry node asks it about the first keyframes, and gives up on a
-        # detector not there within 15 s (a test row's first tree was flagged `detector_unavailable_nearby`
-        # when the nodes' imports shared 2 cores with other work and the detector started last)
+        # and the trunk detector is up: the odometry node asks it about the first keyframes and gives up on a
+        # detector not there within 15 s (the flagged trees seen on a loaded machine came from late answers,
+        # detector_timeout_s, not from this; the wait only keeps a slow start from costing the first keyframes)
         player = [str(b) for b in bags] + ["--rate", str(rate), "--start", str(start_s),
                                            "--wait-reader", "rgbd_odometry", "--wait-node", "trunk_detector"]
         if two:  # the side merger and the trait reporter have started (imported the core) before the first frame

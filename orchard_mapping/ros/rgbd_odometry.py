@@ -257,7 +257,7 @@ class RGBDOdometryNode(Node):
                 self.counts.unpaired += 1
                 self.get_logger().warning(
                     f"colour image at stamp {c_ns / 1e9:.3f} s: no depth image within {tol / 1e9:.3f} s "
-                    f"({'at a side change or the end' if flush else 'a later depth came first'}; depth stamps "
+                    f"({'at the end of a recording' if flush else 'a later depth came first'}; depth stamps "
                     f"held {self._depth[0][0] / 1e9 if self._depth else float('nan'):.3f}-"
                     f"{self._depth[-1][0] / 1e9 if self._depth else float('nan'):.3f} s): frame dropped")
                 continue
