@@ -279,6 +279,8 @@ def train_detector(
                                  "the network; larger finds smaller trunks and costs more per frame)."),
     train_size: list[int] = typer.Option([], help="px: more short sides to train at, one drawn per image "
                                          "(scale jitter; repeat the option)."),
+    whole_masks: bool = typer.Option(False, help="Train on every visible pixel of an instance, specks seen "
+                                     "through leaves included, instead of its solid outline."),
 ) -> None:
     """Train the trunk/post Mask R-CNN (from scratch, or fine-tune --init) and export it to ONNX and .pt
     (needs requirements-train.lock)."""
@@ -298,7 +300,8 @@ def train_detector(
         folders = _coco_folders(data, out.parent / ".coco_cache", every)
         settings = TrainSettings(iterations=iterations, seed=seed, threads=threads,
                                  lr_scale=lr_scale if init is not None else 1.0, min_size=min_size,
-                                 max_size=math.ceil(min_size * 4 / 3), train_sizes=tuple(train_size))
+                                 max_size=math.ceil(min_size * 4 / 3), train_sizes=tuple(train_size),
+                                 solid_outlines=not whole_masks)
         card = train(folders, out, settings,
                      log=lambda m: err_console.print(m), init=init)
     except (OrchardMappingError, ValueError, FloatingPointError) as err:

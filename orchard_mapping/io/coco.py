@@ -27,7 +27,7 @@ import numpy as np
 from orchard_mapping.core.detection import CLASS_NAMES, CLASS_POST, CLASS_TRUNK, DetectorError
 from orchard_mapping.io.results import atomic_write_json
 
-__all__ = ["CocoImage", "export_coco", "load_coco", "mask_rle", "recognisable"]
+__all__ = ["CocoImage", "export_coco", "load_coco", "mask_rle", "recognisable", "solid_outline"]
 
 MIN_INSTANCE_PIXELS = 30  # slivers at the image border teach nothing
 # A recognisable instance has a solid part (every pixel inside a SOLID_PX square of the object's pixels) of
@@ -58,6 +58,19 @@ def recognisable(mask: np.ndarray) -> bool:
         return False
     n, _, stats, _ = cv2.connectedComponentsWithStats(solid, connectivity=8)
     return bool(stats[1:, cv2.CC_STAT_AREA].max() >= MIN_SOLID_PIXELS)  # n > 1: solid has pixels
+
+
+def solid_outline(mask: np.ndarray) -> np.ndarray:
+    """(H, W) bool: what an annotator outlines of an instance: its solid parts with their edges (within
+    SOLID_PX of them), without the specks of the same trunk seen through leaves above or beside them.
+
+    The detector is trained on these. Trained on whole masks, a trunk's box reached from its bark at the
+    foot up through the canopy to its highest speck (on held-out slope_weeds frames 48 % of trunk boxes
+    were over 25 % taller than their solid part's), and the model learnt to box canopies."""
+    m = np.asarray(mask, np.uint8)
+    square = cv2.getStructuringElement(cv2.MORPH_RECT, (SOLID_PX, SOLID_PX))
+    solid = cv2.morphologyEx(m, cv2.MORPH_OPEN, square)
+    return (m & cv2.dilate(solid, square)).astype(bool)
 
 
 def mask_rle(mask: np.ndarray) -> dict:

@@ -12,7 +12,7 @@ import cv2
 import numpy as np
 
 from orchard_mapping.core.detection import CLASS_POST, CLASS_TRUNK
-from orchard_mapping.io.coco import MIN_SOLID_PIXELS, SOLID_PX, load_coco, mask_rle, recognisable
+from orchard_mapping.io.coco import MIN_SOLID_PIXELS, SOLID_PX, load_coco, mask_rle, recognisable, solid_outline
 
 H, W = 240, 320
 
@@ -41,6 +41,21 @@ def test_a_solid_strip_of_bark_is_recognisable_and_scattered_pixels_are_not():
     two = _strip(10, height=30)
     two[160:190, 200:210] = True
     assert not recognisable(two)
+
+
+def test_the_solid_outline_keeps_the_bark_strip_whole_and_drops_the_specks_seen_through_leaves():
+    # a trunk's strip of bark at its foot, 14 px wide with a ragged edge, and its specks up through the canopy
+    strip = _strip(14, height=60)
+    strip[60:120:3, 99] = True  # one-pixel notches on the edge belong to the strip's outline
+    specks = np.zeros((H, W), bool)
+    specks[10:58:6, 104:106] = True  # 2 x 2 specks above the strip, within the trunk's line
+    outline = solid_outline(strip | specks)
+    assert (outline == strip).all()
+    # the instance's box was 3.6 times as tall as its outline's
+    rows = np.nonzero((strip | specks).any(axis=1))[0]
+    assert (rows.max() - rows.min() + 1) > 1.5 * 60
+    # a strip with no solid part has no outline (training keeps such an annotator's sliver whole)
+    assert not solid_outline(_strip(SOLID_PX - 2)).any()
 
 
 def test_iscrowd_comes_back_from_the_file_polygons_and_rle_alike(tmp_path):
