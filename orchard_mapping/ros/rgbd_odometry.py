@@ -329,8 +329,10 @@ class RGBDOdometryNode(Node):
         self.get_logger().info(f"{side} side: tracking")
         detect = None
         if self.get_parameter("detector").value == "node":
-            detect = self._detectors.setdefault(side, RemoteDetector(
-                self, side, cfg.frames.camera, timeout_s=float(self.get_parameter("detector_timeout_s").value)))
+            if side not in self._detectors:  # one client per side: each would add a publisher and a subscription
+                self._detectors[side] = RemoteDetector(
+                    self, side, cfg.frames.camera, timeout_s=float(self.get_parameter("detector_timeout_s").value))
+            detect = self._detectors[side]
         return SideSession(side, intr, cfg, SpooledKeyframeImages(spool), bag=f"{side} side (camera topics)",
                            detect=detect)
 

@@ -81,3 +81,22 @@ def test_the_end_of_a_recording_flushes_a_colour_image_without_depth(node):
     node._on_side(_side(SIDE_END))
     assert _taken(node) == [("frame", 0), ("side", SIDE_END)]
     assert node.counts.paired == 1 and node.counts.unpaired == 1
+
+
+def test_a_side_recorded_again_keeps_one_detector_client(node):
+    """A drive that passes a side twice asks the detector node through one client per side, not one more
+    publisher and subscription at every start of the side."""
+    from rclpy.parameter import Parameter
+
+    from orchard_mapping.ros.trunk_detector import request_topic
+
+    node.set_parameters([Parameter("detector", value="node")])
+    info = CameraInfo()
+    info.width, info.height = 4, 3
+    info.k = [3.0, 0.0, 2.0, 0.0, 3.0, 1.5, 0.0, 0.0, 1.0]
+    first = node._new_session("front", _image(0.0, "rgb8"), info)
+    again = node._new_session("front", _image(5.0, "rgb8"), info)
+    node._new_session("back", _image(2.0, "rgb8"), info)
+    assert first.early.detect is again.early.detect
+    assert node.count_publishers(request_topic("front")) == 1
+    assert node.count_publishers(request_topic("back")) == 1
