@@ -4,7 +4,8 @@ A detector trained on one look of the simulator learns that look, not
 trunks. Each training scene draws what a real orchard varies: bark colour and
 texture, leaf colour and density, soil and turf, sky and sun, exposure, blur,
 weeds, posts, background rows, camera height, distance, roll and tilt, trunk
-diameters and lean, slope. `training_scenes` writes such scenes and exports
+diameters and lean, slope and cross slope, tree spacing, the trunk's clear
+height under the canopy. `training_scenes` writes such scenes and exports
 their frames with trunk and post masks as one COCO folder.
 
 Held out by default: the `slope_weeds` scenario and seeds from 100000 on (the
@@ -79,6 +80,11 @@ def random_domain(rng: np.random.Generator) -> dict[str, Any]:
         "camera.color_noise_sd": rng.uniform(1.0, 5.0),
         "row.slope_deg": rng.uniform(-4, 4),
         "row.undulation_m": rng.uniform(0.0, 0.1),
+        # drawn last, so that the draws above stay those of the scenes simulated before these were added
+        "row.cross_slope_deg": rng.uniform(-4, 4),
+        "row.spacing_m": rng.uniform(0.7, 1.4),
+        # low canopies hide the trunk but for a strip of bark at its foot (or specks through the leaves)
+        "trunk.clear_height_m": [clear := rng.uniform(0.3, 0.8), clear + rng.uniform(0.05, 0.25)],
     }
 
 
