@@ -317,6 +317,9 @@ def eval_detector(
     every: int = typer.Option(5, help="Simulator outputs: every n-th masked frame."),
     count_ignored: bool = typer.Option(False, help="Score regions to ignore (COCO iscrowd: trunk pixels "
                                        "scattered between leaves) as instances that must be found."),
+    solid_outlines: bool = typer.Option(False, help="Score each instance as its solid outline, without the "
+                                        "specks of a trunk seen through leaves beside its bark (what an "
+                                        "annotator outlines; docs/detector.md)."),
     as_json: bool = typer.Option(False, "--json"),
 ) -> None:
     """Mask AP, AP50, AP75 (pycocotools COCOeval) and ms per image of a detector on annotated frames."""
@@ -328,7 +331,8 @@ def eval_detector(
 
     try:
         with tempfile.TemporaryDirectory() as tmp:
-            scores = evaluate_detector(model, _coco_folders(data, Path(tmp), every), ignore_crowd=not count_ignored)
+            scores = evaluate_detector(model, _coco_folders(data, Path(tmp), every), ignore_crowd=not count_ignored,
+                                       solid_outlines=solid_outlines)
     except OrchardMappingError as err:
         raise _fail(err) from err
     if as_json:

@@ -12,7 +12,7 @@ import cv2
 import numpy as np
 
 from orchard_mapping.core.detection import CLASS_NAMES, OnnxTrunkDetector
-from orchard_mapping.io.coco import load_coco, mask_rle
+from orchard_mapping.io.coco import load_coco, mask_rle, solid_outline
 
 __all__ = ["DetectorScores", "evaluate_detector"]
 
@@ -38,11 +38,14 @@ class DetectorScores:
     # confusion of the two classes costs.
     ap50_any_class: float
     ignored: int = 0  # regions to ignore (iscrowd 1): scattered trunk pixels seen through leaves, io/coco.py
+    solid_outlines: bool = False  # instances scored as their solid outlines (io.coco.solid_outline)
 
 def evaluate_detector(model: str | Path, data: list[Path], threads: int = 2, *,
-                      ignore_crowd: bool = True) -> DetectorScores:
+                      ignore_crowd: bool = True, solid_outlines: bool = False) -> DetectorScores:
     """Scores of `model` on the COCO folders `data`. `ignore_crowd=False` scores regions to ignore (iscrowd)
-    as instances that must be found, as COCO folders exported before the flag existed did."""
+    as instances that must be found, as COCO folders exported before the flag existed did.
+    `solid_outlines=True` scores each instance (not the regions to ignore) as its solid outline, without the
+    specks of a trunk seen through leaves beside its bark: what an annotator outlines."""
     from pycocotools import mask as mask_util
     from pycocotools.coco import COCO
 
@@ -53,6 +56,9 @@ def evaluate_detector(model: str | Path, data: list[Path], threads: int = 2, *,
             img_id = len(images) + 1
             images.append({"id": img_id, "width": im.width, "height": im.height, "file_name": str(im.path)})
             for c, m, crowd in zip(im.classes, im.masks, im.crowd):
+                if solid_outlines and not crowd:
+                    outline = solid_outline(m)
+                    m = outline if outline.any() else m  # an annotator's sliver without a solid part stays
                 rle = mask_rle(m)
                 anns.append({"id": len(anns) + 1, "image_id": img_id, "category_id": int(c), "segmentation": rle,
                              "area": float(m.sum()), "bbox": list(mask_util.toBbox(rle)),
@@ -86,7 +92,7 @@ def evaluate_detector(model: str | Path, data: list[Path], threads: int = 2, *,
                           class_ap(0), class_ap(1), float(np.median(times)) * 1000 if times else float("nan"),
                           ap50_trunk=class_ap(0, at50), ap50_post=class_ap(1, at50), ap_small=float(ev.stats[3]),
                           ap_medium=float(ev.stats[4]), ap_large=float(ev.stats[5]),
-                          ap50_any_class=float(agnostic.stats[1]), ignored=ignored)
+                          ap50_any_class=float(agnostic.stats[1]), ignored=ignored, solid_outlines=solid_outlines)
 
 
 def _coco_eval(gt, dt, use_categories: bool):
