@@ -57,8 +57,7 @@ def evaluate_detector(model: str | Path, data: list[Path], threads: int = 2, *,
             images.append({"id": img_id, "width": im.width, "height": im.height, "file_name": str(im.path)})
             for c, m, crowd in zip(im.classes, im.masks, im.crowd):
                 if solid_outlines and not crowd:
-                    outline = solid_outline(m)
-                    m = outline if outline.any() else m  # an annotator's sliver without a solid part stays
+                    m = solid_outline(m, or_whole=True)
                 rle = mask_rle(m)
                 anns.append({"id": len(anns) + 1, "image_id": img_id, "category_id": int(c), "segmentation": rle,
                              "area": float(m.sum()), "bbox": list(mask_util.toBbox(rle)),

@@ -49,28 +49,36 @@ class CocoImage:
     crowd: np.ndarray  # (N,) bool: COCO iscrowd, a region to ignore (neither a miss nor a false detection)
 
 
+_SQUARE = cv2.getStructuringElement(cv2.MORPH_RECT, (SOLID_PX, SOLID_PX))
+
+
+def _solid_part(mask: np.ndarray) -> np.ndarray:
+    """(H, W) uint8: the pixels inside a SOLID_PX square of the mask's pixels (a morphological opening)."""
+    return cv2.morphologyEx(np.asarray(mask, np.uint8), cv2.MORPH_OPEN, _SQUARE)
+
+
 def recognisable(mask: np.ndarray) -> bool:
     """Whether an annotator would outline this visible part of a trunk or post: a connected solid part of
     at least MIN_SOLID_PIXELS (opened with a SOLID_PX square), not pixels scattered between leaves."""
-    solid = cv2.morphologyEx(np.asarray(mask, np.uint8), cv2.MORPH_OPEN,
-                             cv2.getStructuringElement(cv2.MORPH_RECT, (SOLID_PX, SOLID_PX)))
+    solid = _solid_part(mask)
     if int(solid.sum()) < MIN_SOLID_PIXELS:
         return False
     n, _, stats, _ = cv2.connectedComponentsWithStats(solid, connectivity=8)
     return bool(stats[1:, cv2.CC_STAT_AREA].max() >= MIN_SOLID_PIXELS)  # n > 1: solid has pixels
 
 
-def solid_outline(mask: np.ndarray) -> np.ndarray:
+def solid_outline(mask: np.ndarray, *, or_whole: bool = False) -> np.ndarray:
     """(H, W) bool: what an annotator outlines of an instance: its solid parts with their edges (within
     SOLID_PX of them), without the specks of the same trunk seen through leaves above or beside them.
+    `or_whole`: an instance without a solid part (an annotator's thin sliver in a COCO folder) is returned
+    whole rather than empty.
 
     The detector is trained on these. Trained on whole masks, a trunk's box reached from its bark at the
     foot up through the canopy to its highest speck (on held-out slope_weeds frames 48 % of trunk boxes
     were over 25 % taller than their solid part's), and the model learnt to box canopies."""
     m = np.asarray(mask, np.uint8)
-    square = cv2.getStructuringElement(cv2.MORPH_RECT, (SOLID_PX, SOLID_PX))
-    solid = cv2.morphologyEx(m, cv2.MORPH_OPEN, square)
-    return (m & cv2.dilate(solid, square)).astype(bool)
+    outline = (m & cv2.dilate(_solid_part(m), _SQUARE)).astype(bool)
+    return outline if outline.any() or not or_whole else m.astype(bool)
 
 
 def mask_rle(mask: np.ndarray) -> dict:

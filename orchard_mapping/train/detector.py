@@ -124,9 +124,7 @@ def _target(item: CocoImage, rng: random.Random, solid_outlines: bool = True):
     keep = ~item.crowd  # regions to ignore are not instances (torchvision has no ignore label)
     masks, classes = item.masks[keep], item.classes[keep]
     if solid_outlines:
-        outlines = np.array([solid_outline(m) for m in masks]).reshape(masks.shape)
-        # an instance without a solid part (a COCO folder whose annotator outlined a thin sliver) stays whole
-        masks = np.where(outlines.any(axis=(1, 2))[:, None, None], outlines, masks)
+        masks = np.array([solid_outline(m, or_whole=True) for m in masks]).reshape(masks.shape)
     img, masks = _augment(img, masks, rng)
     boxes = []
     for m in masks:

@@ -54,8 +54,9 @@ def test_the_solid_outline_keeps_the_bark_strip_whole_and_drops_the_specks_seen_
     # the instance's box was 3.6 times as tall as its outline's
     rows = np.nonzero((strip | specks).any(axis=1))[0]
     assert (rows.max() - rows.min() + 1) > 1.5 * 60
-    # a strip with no solid part has no outline (training keeps such an annotator's sliver whole)
+    # a strip with no solid part has no outline; training and scoring keep such an annotator's sliver whole
     assert not solid_outline(_strip(SOLID_PX - 2)).any()
+    assert (solid_outline(_strip(SOLID_PX - 2), or_whole=True) == _strip(SOLID_PX - 2)).all()
 
 
 def test_iscrowd_comes_back_from_the_file_polygons_and_rle_alike(tmp_path):
