@@ -281,6 +281,8 @@ def train_detector(
                                          "(scale jitter; repeat the option)."),
     whole_masks: bool = typer.Option(False, help="Train on every visible pixel of an instance, specks seen "
                                      "through leaves included, instead of its solid outline."),
+    crop: float = typer.Option(0.0, help="Share of training images cropped to a random window of 0.6-1 of "
+                               "each side (trunks cut by the image edge, near trunks larger)."),
 ) -> None:
     """Train the trunk/post Mask R-CNN (from scratch, or fine-tune --init) and export it to ONNX and .pt
     (needs requirements-train.lock)."""
@@ -295,13 +297,15 @@ def train_detector(
     from orchard_mapping.errors import OrchardMappingError
 
     try:
+        if not 0.0 <= crop <= 1.0:
+            raise ValueError(f"--crop is a share of the training images, 0 to 1, got {crop}")
         if min_size < 64 or any(t < 64 for t in train_size):
             raise ValueError(f"--min-size and --train-size must be at least 64 px, got {min_size} and {train_size}")
         folders = _coco_folders(data, out.parent / ".coco_cache", every)
         settings = TrainSettings(iterations=iterations, seed=seed, threads=threads,
                                  lr_scale=lr_scale if init is not None else 1.0, min_size=min_size,
                                  max_size=math.ceil(min_size * 4 / 3), train_sizes=tuple(train_size),
-                                 solid_outlines=not whole_masks)
+                                 solid_outlines=not whole_masks, crop_prob=crop)
         card = train(folders, out, settings,
                      log=lambda m: err_console.print(m), init=init)
     except (OrchardMappingError, ValueError, FloatingPointError) as err:
