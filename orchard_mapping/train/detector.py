@@ -143,18 +143,18 @@ def _augment(img: np.ndarray, masks: np.ndarray, rng: random.Random) -> tuple[np
     return np.clip(x, 0, 255).astype(np.uint8), np.ascontiguousarray(masks)
 
 
-def _target(item: CocoImage, rng: random.Random, solid_outlines: bool = True, crop_prob: float = 0.0,
-            crop_min_scale: float = 0.6):
+def _target(item: CocoImage, rng: random.Random, s: TrainSettings):
+    """One training image (3, H, W) in [0, 1] and its torchvision target, with the augmentations of `s`."""
     import cv2
     import torch
 
     img = cv2.cvtColor(cv2.imread(str(item.path), cv2.IMREAD_COLOR), cv2.COLOR_BGR2RGB)
     keep = ~item.crowd  # regions to ignore are not instances (torchvision has no ignore label)
     masks, classes = item.masks[keep], item.classes[keep]
-    if solid_outlines:
+    if s.solid_outlines:
         masks = np.array([solid_outline(m, or_whole=True) for m in masks]).reshape(masks.shape)
-    if crop_prob > 0 and rng.random() < crop_prob:
-        img, masks, kept = random_crop(img, masks, rng, crop_min_scale)
+    if s.crop_prob > 0 and rng.random() < s.crop_prob:
+        img, masks, kept = random_crop(img, masks, rng, s.crop_min_scale)
         classes = classes[kept]
     img, masks = _augment(img, masks, rng)
     boxes = []
@@ -224,8 +224,7 @@ def train(data: list[Path], out: Path, s: TrainSettings, log=print, init: Path |
     for it in range(s.iterations):
         for g in opt.param_groups:
             g["lr"] = lr_at(it)
-        batch = [_target(items[rng.randrange(len(items))], rng, s.solid_outlines, s.crop_prob, s.crop_min_scale)
-                 for _ in range(s.batch)]
+        batch = [_target(items[rng.randrange(len(items))], rng, s) for _ in range(s.batch)]
         imgs = [b[0].to(device) for b in batch]
         tg = [{k: v.to(device) for k, v in b[1].items()} for b in batch]
         loss_dict = model(imgs, tg)
