@@ -90,7 +90,7 @@ def build_model(s: TrainSettings):
     model = MaskRCNN(
         # torchvision draws a training size from min_size and predicts at its last entry
         backbone, num_classes=None, min_size=(*s.train_sizes, s.min_size),
-        max_size=max(s.max_size, *(math.ceil(t * 4 / 3) for t in s.train_sizes)),
+        max_size=max([s.max_size, *(math.ceil(t * 4 / 3) for t in s.train_sizes)]),
         rpn_anchor_generator=anchors,
         box_roi_pool=MultiScaleRoIAlign(levels, 7, 2), mask_roi_pool=MultiScaleRoIAlign(levels, 14, 2),
         box_head=TwoMLPHead(c * 7 * 7, s.representation),
