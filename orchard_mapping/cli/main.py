@@ -283,6 +283,9 @@ def train_detector(
                                      "through leaves included, instead of its solid outline."),
     crop: float = typer.Option(0.0, help="Share of training images cropped to a random window of 0.6-1 of "
                                "each side (trunks cut by the image edge, near trunks larger)."),
+    fpn_stride: list[int] = typer.Option([8, 16, 32], help="px: strides of the backbone stages the FPN reads "
+                                         "(repeat the option; with --init, FPN levels new to the checkpoint "
+                                         "start from random weights)."),
 ) -> None:
     """Train the trunk/post Mask R-CNN (from scratch, or fine-tune --init) and export it to ONNX and .pt
     (needs requirements-train.lock)."""
@@ -305,7 +308,8 @@ def train_detector(
         settings = TrainSettings(iterations=iterations, seed=seed, threads=threads,
                                  lr_scale=lr_scale if init is not None else 1.0, min_size=min_size,
                                  max_size=math.ceil(min_size * 4 / 3), train_sizes=tuple(train_size),
-                                 solid_outlines=not whole_masks, crop_prob=crop)
+                                 solid_outlines=not whole_masks, crop_prob=crop,
+                                 fpn_strides=tuple(fpn_stride))
         card = train(folders, out, settings,
                      log=lambda m: err_console.print(m), init=init)
     except (OrchardMappingError, ValueError, FloatingPointError) as err:

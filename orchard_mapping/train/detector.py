@@ -45,6 +45,11 @@ class TrainSettings:
     # px: short sides drawn at random per training image besides min_size (scale jitter); () trains at min_size
     train_sizes: tuple[int, ...] = ()
     fpn_channels: int = 96
+    # px: strides of the backbone stages that feed the FPN (plus a max-pool level at twice the last). A trunk
+    # is 10-20 px wide at 416 px: torchvision's MobileNet FPN, which read two stages both at stride 32 (the
+    # layout of the models before stop 41), saw it as half a feature cell. 8/16/32 cost 0.69 s per training
+    # iteration against 0.64 and 40 ms per ONNX frame against 31 (stop 41, 2 CPU cores, random weights).
+    fpn_strides: tuple[int, ...] = (8, 16, 32)
     representation: int = 256
     seed: int = 0
     threads: int = 2
@@ -76,16 +81,14 @@ def build_model(s: TrainSettings):
     from torchvision.ops.feature_pyramid_network import LastLevelMaxPool
 
     features = mobilenet_v3_large(weights=None).features
-    # stages whose outputs feed the FPN: strides 16 and 32 (as torchvision's mobilenet FPN does)
-    stage_ends = [i for i, b in enumerate(features) if getattr(b, "_is_cn", False)] + [len(features) - 1]
-    returned = [stage_ends[-2], stage_ends[-1]]
+    returned = fpn_stage_blocks(features, s.fpn_strides)
     return_layers = {str(i): str(k) for k, i in enumerate(returned)}
     in_channels = [features[i].out_channels for i in returned]
     backbone = BackboneWithFPN(nn.Sequential(*features), return_layers, in_channels, s.fpn_channels,
                                extra_blocks=LastLevelMaxPool())
-    levels = ["0", "1", "pool"]  # 3 feature maps: anchors and both RoI poolers need 3 levels
-    anchors = AnchorGenerator(sizes=((32, 64, 128, 256, 384),) * 3,
-                              aspect_ratios=((1.0, 2.0, 4.0, 6.0),) * 3)  # h/w: trunks are tall
+    levels = [*(str(k) for k in range(len(returned))), "pool"]  # anchors and both RoI poolers see every level
+    anchors = AnchorGenerator(sizes=((32, 64, 128, 256, 384),) * len(levels),
+                              aspect_ratios=((1.0, 2.0, 4.0, 6.0),) * len(levels))  # h/w: trunks are tall
     c = s.fpn_channels
     model = MaskRCNN(
         # torchvision draws a training size from min_size and predicts at its last entry
@@ -101,6 +104,20 @@ def build_model(s: TrainSettings):
     )
     torch.manual_seed(s.seed)
     return model
+
+
+def fpn_stage_blocks(features, strides: tuple[int, ...]) -> list[int]:
+    """Index of the last block of MobileNetV3's `features` at each output stride in `strides` (px). The stem
+    halves the image; each block marked `_is_cn` (torchvision's mark for a strided block) halves it again."""
+    stride, last_at = 2, {}
+    for i, block in enumerate(features):
+        if i > 0 and getattr(block, "_is_cn", False):
+            stride *= 2
+        last_at[stride] = i
+    wrong = [st for st in strides if st not in last_at]
+    if not strides or wrong or list(strides) != sorted(set(strides)):
+        raise ValueError(f"fpn_strides must be increasing strides among {sorted(last_at)}, got {list(strides)}")
+    return [last_at[st] for st in strides]
 
 
 # px: a cropped instance keeps at least this much of its mask, or it is dropped from the target (a sliver of
@@ -185,11 +202,45 @@ def load_checkpoint(model, path: Path) -> None:
     except (OSError, RuntimeError, ValueError) as err:
         raise ValueError(f"checkpoint {path}: not readable ({err})") from err
     own = model.state_dict()
-    wrong = [k for k in own if k not in state or state[k].shape != own[k].shape]
+    state, fresh = _match_fpn_levels(state, own)
+    wrong = [k for k in own if k not in fresh and (k not in state or state[k].shape != own[k].shape)]
     if wrong:
         raise ValueError(f"checkpoint {path}: does not fit the model built from these settings "
                          f"({len(wrong)} tensors missing or of another shape, first {wrong[0]})")
-    model.load_state_dict({k: v.to(own[k].dtype) for k, v in state.items()})
+    model.load_state_dict({k: v.to(own[k].dtype) for k, v in state.items() if k in own}, strict=False)
+    return fresh
+
+
+_FPN = "backbone.fpn."
+
+
+def _match_fpn_levels(state: dict, own: dict) -> tuple[dict, list[str]]:
+    """Carry a checkpoint over to a model whose FPN reads other backbone stages (`fpn_strides`): each FPN
+    level of the model takes the checkpoint's level that read a stage with as many channels (the same
+    stage of the shared backbone), and a level with none starts from its fresh initialisation. Returns the
+    checkpoint with its FPN keys renamed, and the model's FPN tensors left fresh. Everything outside the FPN
+    must still match exactly (the caller checks)."""
+    def levels(d: dict) -> dict[int, int]:  # FPN level -> input channels of its 1x1 inner block
+        return {int(k.split(".")[3]): int(v.shape[1]) for k, v in d.items()
+                if k.startswith(_FPN + "inner_blocks.") and k.endswith(".weight")}
+
+    old, new = levels(state), levels(own)
+    if old == new:
+        return state, []
+    by_channels = {c: lvl for lvl, c in old.items()}
+    out = {k: v for k, v in state.items() if not k.startswith(_FPN)}
+    fresh: list[str] = []
+    for lvl, c in new.items():
+        src = by_channels.get(c)
+        for kind in ("inner_blocks", "layer_blocks"):
+            prefix = f"{_FPN}{kind}.{lvl}."
+            for k in (k for k in own if k.startswith(prefix)):
+                key = f"{_FPN}{kind}.{src}.{k[len(prefix):]}"
+                if src is not None and key in state and state[key].shape == own[k].shape:
+                    out[k] = state[key]
+                else:
+                    fresh.append(k)
+    return out, fresh
 
 
 def train(data: list[Path], out: Path, s: TrainSettings, log=print, init: Path | None = None) -> dict[str, Any]:
@@ -206,7 +257,9 @@ def train(data: list[Path], out: Path, s: TrainSettings, log=print, init: Path |
     device = torch.device("cuda" if torch.cuda.is_available() else "cpu")
     model = build_model(s)
     if init is not None:
-        load_checkpoint(model, init)
+        fresh = load_checkpoint(model, init)
+        if fresh:
+            log(f"{init}: FPN levels new to the checkpoint start from random weights ({len(fresh)} tensors)")
     model = model.to(device)
     params = [p for p in model.parameters() if p.requires_grad]
     opt = torch.optim.SGD(params, lr=s.lr, momentum=0.9, weight_decay=s.weight_decay)
