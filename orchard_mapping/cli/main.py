@@ -286,6 +286,7 @@ def train_detector(
     fpn_stride: list[int] = typer.Option([8, 16, 32], help="px: strides of the backbone stages the FPN reads "
                                          "(repeat the option; with --init, FPN levels new to the checkpoint "
                                          "start from random weights)."),
+    checkpoint_every: int = typer.Option(0, help="Also write the weights every N iterations (OUT.<N>.pt)."),
 ) -> None:
     """Train the trunk/post Mask R-CNN (from scratch, or fine-tune --init) and export it to ONNX and .pt
     (needs requirements-train.lock)."""
@@ -311,7 +312,7 @@ def train_detector(
                                  solid_outlines=not whole_masks, crop_prob=crop,
                                  fpn_strides=tuple(fpn_stride))
         card = train(folders, out, settings,
-                     log=lambda m: err_console.print(m), init=init)
+                     log=lambda m: err_console.print(m), init=init, checkpoint_every=checkpoint_every)
     except (OrchardMappingError, ValueError, FloatingPointError) as err:
         raise _fail(err) from err
     console.print(f"wrote {out}: {card['images']} images, {card['instances']} instances, "

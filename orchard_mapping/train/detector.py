@@ -243,10 +243,12 @@ def _match_fpn_levels(state: dict, own: dict) -> tuple[dict, list[str]]:
     return out, fresh
 
 
-def train(data: list[Path], out: Path, s: TrainSettings, log=print, init: Path | None = None) -> dict[str, Any]:
+def train(data: list[Path], out: Path, s: TrainSettings, log=print, init: Path | None = None,
+          checkpoint_every: int = 0) -> dict[str, Any]:
     """Train on COCO folders (`data`), export ONNX to `out` and the weights to `out` with suffix .pt;
     returns what the model card reports. `init`: a checkpoint to start from (fine-tuning) instead of
-    random initialisation."""
+    random initialisation. `checkpoint_every` > 0: also the weights every that many iterations, to
+    `out` with suffix .<iteration>.pt (a long CPU run can be scored on the way, or kept if cut off)."""
     import torch
 
     torch.set_num_threads(s.threads)
@@ -271,6 +273,7 @@ def train(data: list[Path], out: Path, s: TrainSettings, log=print, init: Path |
             return peak * (0.001 + 0.999 * it / s.warmup)
         return 0.5 * peak * (1 + math.cos(math.pi * (it - s.warmup) / max(1, s.iterations - s.warmup)))
 
+    out.parent.mkdir(parents=True, exist_ok=True)
     model.train()
     t0 = time.perf_counter()
     losses: list[float] = []
@@ -292,8 +295,9 @@ def train(data: list[Path], out: Path, s: TrainSettings, log=print, init: Path |
         if (it + 1) % 50 == 0 or it == 0:
             log(f"iteration {it + 1}/{s.iterations}: loss {np.mean(losses[-50:]):.3f} "
                 f"({time.perf_counter() - t0:.0f} s)")
+        if checkpoint_every > 0 and (it + 1) % checkpoint_every == 0 and it + 1 < s.iterations:
+            save_checkpoint(model, out.with_suffix(f".{it + 1}.pt"))
     seconds = time.perf_counter() - t0
-    out.parent.mkdir(parents=True, exist_ok=True)
     save_checkpoint(model.cpu(), out.with_suffix(".pt"))
     export_onnx(model.eval(), out, s)
     card = {"settings": asdict(s), "train_seconds": round(seconds, 1), "device": str(device),
