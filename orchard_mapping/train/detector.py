@@ -194,7 +194,10 @@ def save_checkpoint(model, path: Path) -> Path:
     return path
 
 
-def load_checkpoint(model, path: Path) -> None:
+def load_checkpoint(model, path: Path) -> list[str]:
+    """Load `path` into `model`; returns the model's FPN tensors the checkpoint had no level for (left at
+    their fresh initialisation, see `_match_fpn_levels`). Any other tensor missing, extra or of another
+    shape is an error."""
     import torch
 
     try:
@@ -204,10 +207,12 @@ def load_checkpoint(model, path: Path) -> None:
     own = model.state_dict()
     state, fresh = _match_fpn_levels(state, own)
     wrong = [k for k in own if k not in fresh and (k not in state or state[k].shape != own[k].shape)]
+    wrong += [k for k in state if k not in own]
     if wrong:
         raise ValueError(f"checkpoint {path}: does not fit the model built from these settings "
-                         f"({len(wrong)} tensors missing or of another shape, first {wrong[0]})")
-    model.load_state_dict({k: v.to(own[k].dtype) for k, v in state.items() if k in own}, strict=False)
+                         f"({len(wrong)} tensors missing, extra or of another shape, first {wrong[0]})")
+    # strict=False only for the fresh FPN tensors: every other key was checked above
+    model.load_state_dict({k: v.to(own[k].dtype) for k, v in state.items()}, strict=False)
     return fresh
 
 
