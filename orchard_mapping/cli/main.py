@@ -319,6 +319,41 @@ def train_detector(
                   f"{card['train_seconds']:.0f} s on {card['device']}")
 
 
+@app.command("export-detector")
+def export_detector(
+    weights: Path = typer.Option(..., help="Trained weights (.pt written by train-detector)."),
+    out: Path = typer.Option(..., help="ONNX model to write (and its training record, .json, beside it)."),
+    record: Optional[Path] = typer.Option(None, help="Training record the network is rebuilt from "
+                                          "(default: the .json beside --weights)."),
+    min_size: Optional[int] = typer.Option(None, help="px: the model's input short side, if not as trained."),
+    rpn_pre_nms: Optional[int] = typer.Option(None, help="RPN proposals kept per FPN level before its NMS."),
+    rpn_post_nms: Optional[int] = typer.Option(None, help="RPN proposals kept after its NMS."),
+) -> None:
+    """Export trained weights to ONNX again with other inference settings (needs requirements-train.lock)."""
+    try:
+        import torch  # noqa: F401
+        import torchvision  # noqa: F401
+
+        from orchard_mapping.train.detector import reexport
+    except ImportError as err:
+        raise _fail(RuntimeError(f"export-detector needs torch and torchvision: pip install -r "
+                                 f"requirements-train.lock ({err})")) from err
+    overrides: dict[str, Any] = {}
+    if min_size is not None:
+        overrides.update(min_size=min_size, max_size=math.ceil(min_size * 4 / 3))
+    if rpn_pre_nms is not None:
+        overrides["rpn_pre_nms_test"] = rpn_pre_nms
+    if rpn_post_nms is not None:
+        overrides["rpn_post_nms_test"] = rpn_post_nms
+    try:
+        if any(v < 1 for v in overrides.values()):
+            raise ValueError(f"export-detector settings must be positive, got {overrides}")
+        reexport(weights, out, record, **overrides)
+    except ValueError as err:
+        raise _fail(err) from err
+    console.print(f"wrote {out}")
+
+
 @app.command("eval-detector")
 def eval_detector(
     model: Path = typer.Option(..., help="ONNX model following docs/detector.md."),
