@@ -14,7 +14,6 @@ import os
 os.environ.setdefault("OPENBLAS_NUM_THREADS", "1")
 
 import json
-import math
 import logging
 from pathlib import Path
 from typing import Any, Optional
@@ -294,7 +293,7 @@ def train_detector(
         import torch  # noqa: F401
         import torchvision  # noqa: F401
 
-        from orchard_mapping.train.detector import TrainSettings, train
+        from orchard_mapping.train.detector import TrainSettings, long_side, train
     except ImportError as err:
         raise _fail(RuntimeError(f"train-detector needs torch and torchvision: pip install -r "
                                  f"requirements-train.lock ({err})")) from err
@@ -308,7 +307,7 @@ def train_detector(
         folders = _coco_folders(data, out.parent / ".coco_cache", every)
         settings = TrainSettings(iterations=iterations, seed=seed, threads=threads,
                                  lr_scale=lr_scale if init is not None else 1.0, min_size=min_size,
-                                 max_size=math.ceil(min_size * 4 / 3), train_sizes=tuple(train_size),
+                                 max_size=long_side(min_size), train_sizes=tuple(train_size),
                                  solid_outlines=not whole_masks, crop_prob=crop,
                                  fpn_strides=tuple(fpn_stride))
         card = train(folders, out, settings,
@@ -334,13 +333,13 @@ def export_detector(
         import torch  # noqa: F401
         import torchvision  # noqa: F401
 
-        from orchard_mapping.train.detector import reexport
+        from orchard_mapping.train.detector import long_side, reexport
     except ImportError as err:
         raise _fail(RuntimeError(f"export-detector needs torch and torchvision: pip install -r "
                                  f"requirements-train.lock ({err})")) from err
     overrides: dict[str, Any] = {}
     if min_size is not None:
-        overrides.update(min_size=min_size, max_size=math.ceil(min_size * 4 / 3))
+        overrides.update(min_size=min_size, max_size=long_side(min_size))
     if rpn_pre_nms is not None:
         overrides["rpn_pre_nms_test"] = rpn_pre_nms
     if rpn_post_nms is not None:

@@ -74,6 +74,11 @@ class TrainSettings:
     crop_min_scale: float = 0.6
 
 
+def long_side(short_side: int) -> int:
+    """px: the network's largest long side for a short side of `short_side` (640 x 480 frames: 4/3)."""
+    return math.ceil(short_side * 4 / 3)
+
+
 def build_model(s: TrainSettings):
     import torch
     from torch import nn
@@ -99,7 +104,7 @@ def build_model(s: TrainSettings):
     model = MaskRCNN(
         # torchvision draws a training size from min_size and predicts at its last entry
         backbone, num_classes=None, min_size=(*s.train_sizes, s.min_size),
-        max_size=max([s.max_size, *(math.ceil(t * 4 / 3) for t in s.train_sizes)]),
+        max_size=max([s.max_size, *(long_side(t) for t in s.train_sizes)]),
         rpn_anchor_generator=anchors,
         box_roi_pool=MultiScaleRoIAlign(levels, 7, 2), mask_roi_pool=MultiScaleRoIAlign(levels, 14, 2),
         box_head=TwoMLPHead(c * 7 * 7, s.representation),
@@ -316,8 +321,17 @@ def train(data: list[Path], out: Path, s: TrainSettings, log=print, init: Path |
             "init": str(init) if init is not None else None,
             "images": len(items), "instances": int(sum((~i.crowd).sum() for i in items)),
             "data": [str(d) for d in data], "final_loss": float(np.mean(losses[-100:]))}
-    out.with_suffix(".json").write_text(json.dumps(card, indent=1))
+    write_record(out, card)
     return card
+
+
+def write_record(model_path: Path, card: dict[str, Any]) -> Path:
+    """The training record `card` as JSON beside `model_path` (same name, .json), written atomically."""
+    path = model_path.with_suffix(".json")
+    tmp = path.with_name(f".{path.name}.partial")
+    tmp.write_text(json.dumps(card, indent=1))
+    tmp.replace(path)
+    return path
 
 
 def _box_masks_postprocess(self, result, image_shapes, original_image_sizes):
@@ -371,7 +385,5 @@ def reexport(weights: Path, out: Path, record: Path | None = None, **overrides: 
     load_checkpoint(model, weights)
     export_onnx(model.eval(), out, s)
     card = {**card, "settings": asdict(s), "exported_from": str(weights)}
-    tmp = out.with_name(f".{out.stem}.json.partial")
-    tmp.write_text(json.dumps(card, indent=1))
-    tmp.replace(out.with_suffix(".json"))
+    write_record(out, card)
     return card
