@@ -108,3 +108,64 @@ def test_specks_seen_through_leaves_are_scored_only_without_solid_outlines(tmp_p
     assert whole.ap50_trunk == pytest.approx(1.0) and whole.ap_trunk < 0.75
     assert outlined.ap_trunk == pytest.approx(1.0) and outlined.solid_outlines
     assert outlined.ap_post == pytest.approx(whole.ap_post) == pytest.approx(1.0)  # a post has no specks
+
+
+def _evaluated(found_in: list[bool]):
+    """COCOeval (segm, as evaluate_detector runs it) of frames that each hold one trunk and one post; the post is
+    always found exactly, the trunk exactly in the frames where found_in says so and not at all elsewhere."""
+    from pycocotools.coco import COCO
+
+    from orchard_mapping.eval.detector import _coco_eval
+
+    trunk, post = _frame_mask(TRUNK), _frame_mask(POST)
+    images, anns, results = [], [], []
+    for i, found in enumerate(found_in, start=1):
+        images.append({"id": i, "width": W * SCALE, "height": H * SCALE})
+        for c, m in ((CLASS_TRUNK, trunk), (CLASS_POST, post)):
+            rle = mask_rle(m)
+            anns.append({"id": len(anns) + 1, "image_id": i, "category_id": c, "segmentation": rle,
+                         "area": float(m.sum()), "bbox": [0, 0, 1, 1], "iscrowd": 0})
+            if found or c == CLASS_POST:
+                results.append({"image_id": i, "category_id": c, "segmentation": rle, "score": 0.9})
+    gt = COCO()
+    gt.dataset = {"images": images, "annotations": anns,
+                  "categories": [{"id": CLASS_TRUNK, "name": "trunk"}, {"id": CLASS_POST, "name": "post"}]}
+    gt.createIndex()
+    return _coco_eval(gt, gt.loadRes(results), use_categories=True)
+
+
+def test_frames_are_resampled_by_the_recording_their_name_gives():
+    from pathlib import Path
+
+    from orchard_mapping.eval.detector import recording_of
+
+    assert recording_of(Path("images/scene0007_front_000013.jpg")) == str(Path("images/scene0007_front"))
+    assert recording_of(Path("a/row-12.png")) == str(Path("a/row"))
+    assert recording_of(Path("a/frame.png")) == str(Path("a/frame"))  # no number: a recording of its own
+
+
+def test_one_recording_resampled_gives_back_its_own_scores():
+    """Every draw of a single recording is that recording whole: the interval closes on COCO's own figures,
+    which checks that the per-image matches are re-accumulated in COCOeval's layout."""
+    from orchard_mapping.eval.detector import bootstrap_intervals
+
+    ev = _evaluated([True, False, True, True, False])
+    iv = bootstrap_intervals(ev, ["row"] * 5, draws=20)
+    assert iv["ap_interval"] == pytest.approx((ev.stats[0], ev.stats[0]))
+    assert iv["ap50_interval"] == pytest.approx((ev.stats[1], ev.stats[1]))
+    trunk50 = 61 / 101  # 3 of 5 trunks at precision 1: COCO's recall points 0, 0.01, ..., 0.60
+    assert iv["ap50_trunk_interval"] == pytest.approx((trunk50, trunk50))
+
+
+def test_the_interval_spans_what_resampling_the_recordings_can_give():
+    """Recording a finds every trunk, recording b none: draws of (a, a) score the trunk 1, of (b, b) 0; with
+    200 draws both appear (each has 1 chance in 4), so the 95 % interval of trunk AP50 is [0, 1] while the
+    post's perfect score keeps AP50 at 0.5 or more."""
+    from orchard_mapping.eval.detector import bootstrap_intervals
+
+    ev = _evaluated([True, True, False, False])
+    iv = bootstrap_intervals(ev, ["a", "a", "b", "b"], draws=200)
+    assert iv["ap50_trunk_interval"] == pytest.approx((0.0, 1.0))
+    assert iv["ap50_interval"] == pytest.approx((0.5, 1.0))
+    with pytest.raises(ValueError, match="3 recording names for 4"):
+        bootstrap_intervals(ev, ["a", "a", "b"], draws=5)
