@@ -365,6 +365,7 @@ def eval_detector(
                                         "annotator outlines; docs/detector.md)."),
     bootstrap: int = typer.Option(0, min=0, help="Resamplings of the recordings (frames named <recording>_<n>) "
                                   "for 95 % intervals of AP, AP50 and trunk AP50 (0: none; 1000 is usual)."),
+    flip: bool = typer.Option(False, help="Detect on each frame and on its mirror (trunks.flip_test)."),
     as_json: bool = typer.Option(False, "--json"),
 ) -> None:
     """Mask AP, AP50, AP75 (pycocotools COCOeval) and ms per image of a detector on annotated frames."""
@@ -377,7 +378,7 @@ def eval_detector(
     try:
         with tempfile.TemporaryDirectory() as tmp:
             scores = evaluate_detector(model, _coco_folders(data, Path(tmp), every), ignore_crowd=not count_ignored,
-                                       solid_outlines=solid_outlines, bootstrap=bootstrap)
+                                       solid_outlines=solid_outlines, bootstrap=bootstrap, flip=flip)
     except OrchardMappingError as err:
         raise _fail(err) from err
     if as_json:

@@ -69,6 +69,9 @@ class TrunkParams:
     score_threshold: float = 0.5  # detections scored lower are dropped
     mask_threshold: float = 0.5  # mask probability of a trunk pixel
     max_mask_overlap: float = 0.5  # a mask more than this fraction inside higher-scored ones is a duplicate
+    # The detector also sees each frame mirrored (test-time flip): more trunks found on scenes unlike the
+    # training ones, at twice the detector's time; off for live use (models/README.md).
+    flip_test: bool = False
     input_width: int = 0  # px, the model's input size (0: the model's own, or the frame's if dynamic)
     input_height: int = 0
     threads: int = 2  # onnxruntime intra-op threads

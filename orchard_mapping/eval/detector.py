@@ -50,16 +50,18 @@ class DetectorScores:
     ap50_trunk_interval: tuple[float, float] | None = None
 
 def evaluate_detector(model: str | Path, data: list[Path], threads: int = 2, *,
-                      ignore_crowd: bool = True, solid_outlines: bool = False, bootstrap: int = 0) -> DetectorScores:
+                      ignore_crowd: bool = True, solid_outlines: bool = False, bootstrap: int = 0,
+                      flip: bool = False) -> DetectorScores:
     """Scores of `model` on the COCO folders `data`. `ignore_crowd=False` scores regions to ignore (iscrowd)
     as instances that must be found, as COCO folders exported before the flag existed did.
     `solid_outlines=True` scores each instance (not the regions to ignore) as its solid outline, without the
     specks of a trunk seen through leaves beside its bark: what an annotator outlines.
+    `flip=True` runs the detector with its test-time flip (trunks.flip_test).
     `bootstrap=N` adds 95 % intervals of AP, AP50 and trunk AP50 over N resamplings of the recordings."""
     from pycocotools import mask as mask_util
     from pycocotools.coco import COCO
 
-    det = OnnxTrunkDetector(model, score_threshold=0.05, threads=threads)
+    det = OnnxTrunkDetector(model, score_threshold=0.05, threads=threads, flip=flip)
     images, anns, results, times = [], [], [], []
     for folder in data:
         for im in load_coco(folder):

@@ -72,6 +72,30 @@ def test_a_second_detection_of_part_of_a_trunk_is_dropped(tmp_path, constant_det
     assert sorted(d.score for d in kept) == pytest.approx([0.7, 0.8, 0.9])
 
 
+def test_the_test_time_flip_maps_the_mirrors_detections_back_and_drops_their_duplicates(tmp_path, constant_detector):
+    """The constant model finds the same trunk (u 20-30) and post (u 50-56) in the frame and in its mirror. Mirrored
+    back, the mirror's trunk stands at u 34-44 (a trunk of its own, box and mask mirrored) and its post at u 8-14;
+    a trunk that is symmetric about the frame's centre (u 27-37) is found twice at one place: kept once, with
+    the mirror's copy dropped as a duplicate."""
+    frame = np.zeros((2 * H, 2 * W, 3), np.uint8)  # results scaled by 2
+    model = _model(constant_detector, tmp_path / "m.onnx")
+    plain = OnnxTrunkDetector(model).detect(frame)
+    both = OnnxTrunkDetector(model, flip=True).detect(frame)
+    assert [d.class_id for d in both] == [CLASS_TRUNK, CLASS_TRUNK, CLASS_POST, CLASS_POST]
+    assert [d.score for d in both] == pytest.approx([0.95, 0.95, 0.7, 0.7])
+    assert np.array_equal(both[0].mask, plain[0].mask) and np.array_equal(both[2].mask, plain[1].mask)
+    np.testing.assert_allclose(both[1].box, [2 * W - 60, 20, 2 * W - 40, 80])  # x 68-88
+    v, u = np.nonzero(both[1].mask)
+    assert (v.min(), v.max(), u.min(), u.max()) == (20, 79, 68, 87)
+    assert np.array_equal(both[3].mask, plain[1].mask[:, ::-1])
+    m = np.zeros((1, 1, H, W), np.float32)
+    m[0, 0, 10:40, 27:37] = 0.9
+    centred = {"boxes": np.array([[27, 10, 37, 40]], np.float32), "labels": np.array([CLASS_TRUNK], np.int64),
+               "scores": np.array([0.9], np.float32), "masks": m}
+    one = OnnxTrunkDetector(_model(constant_detector, tmp_path / "c.onnx", values=centred), flip=True).detect(frame)
+    assert len(one) == 1 and int(one[0].mask.sum()) == 4 * 300
+
+
 def test_box_relative_masks_are_pasted_into_their_boxes(tmp_path, constant_detector):
     det = OnnxTrunkDetector(_model(constant_detector, tmp_path / "m.onnx", box_masks=True))
     out = det.detect(np.zeros((2 * H, 2 * W, 3), np.uint8))
