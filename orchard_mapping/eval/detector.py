@@ -93,9 +93,7 @@ def evaluate_detector(model: str | Path, data: list[Path], threads: int = 2, *,
     precision = ev.eval["precision"]  # (T, R, K, A, M): IoU thresholds, recall, class, area, max dets
 
     def class_ap(k: int, iou: slice = slice(None)) -> float:
-        p = precision[iou, :, k, 0, -1]
-        p = p[p > -1]
-        return float(p.mean()) if p.size else -1.0
+        return _mean_valid(precision[iou, :, k, 0, -1])
 
     at50 = slice(0, 1)  # iouThrs[0] == 0.5
     ignored = sum(a["iscrowd"] for a in anns)
