@@ -17,8 +17,12 @@ configurations --repeat times, and the ratio of the runs' wall-clock times (with
 the goal is <= 1.25. The run without trunks has no merge (it needs trunks), so the ratio is also printed
 with the merge stage's time (it comes last, outputs included) taken off the run with trunks.
 
+With --set KEY=VALUE (repeatable, as `orchard-map run --set`) the run with trunks uses that configuration,
+e.g. `--set trunks.flip_test=true --set trunks.detect_every_m=0.3`; its results go to `result_<--tag>`.
+
     python benchmarks/trunks.py [--scenarios standard slope_weeds] [--trees 10] [--rate 15]
         [--workdir /tmp/trunks_bench] [--reuse] [--source masks|model] [--cost --repeat 2] [--json out.json]
+        [--set KEY=VALUE ...] [--tag NAME]
 """
 
 from __future__ import annotations
@@ -61,7 +65,7 @@ def simulate_case(scenario: str, trees: int, rate: float, seed: int, sim_dir: Pa
     console.print(f"simulated {scenario} in {time.perf_counter() - t0:.0f} s")
 
 
-def run_once(sim_dir: Path, out: Path, source: str) -> tuple[dict[str, float], float]:
+def run_once(sim_dir: Path, out: Path, source: str, sets: list[str] = ()) -> tuple[dict[str, float], float]:
     """(the run's stages, s; the wall-clock seconds of the whole `orchard-map run` command, its start and
     writing included). The command is what is timed, as a user runs it (its worker process and BLAS threads
     are set up there). Stages overlap (the detector beside the front end, the trunk worker), so they can add
@@ -70,6 +74,8 @@ def run_once(sim_dir: Path, out: Path, source: str) -> tuple[dict[str, float], f
            "--out", str(out), "--set", f"trunks.source={source}"]
     if source == "masks":
         cmd += ["--set", f"trunks.masks_dir={sim_dir / 'masks'}"]
+    for kv in sets:
+        cmd += ["--set", kv]
     t0 = time.perf_counter()
     done = subprocess.run(cmd, capture_output=True, text=True)
     wall = time.perf_counter() - t0
@@ -127,12 +133,16 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--cost", action="store_true", help="standard: time the run with and without trunks")
     ap.add_argument("--repeat", type=int, default=2)
     ap.add_argument("--json", type=Path)
+    ap.add_argument("--set", dest="sets", action="append", default=[], metavar="KEY=VALUE",
+                    help="configuration override for the run with trunks (as orchard-map run --set)")
+    ap.add_argument("--tag", help="results in result_<tag> (default: result)")
     args = ap.parse_args(argv)
 
     cases = []
     for sc in args.scenarios:
         case_dir = args.workdir / f"{sc}_{args.trees}trees_{args.rate:g}hz_seed{args.seed}"
-        sim_dir, res_dir = case_dir / "sim", case_dir / "result"
+        sim_dir = case_dir / "sim"
+        res_dir = case_dir / (f"result_{args.tag}" if args.tag else "result")
         simulate_case(sc, args.trees, args.rate, args.seed, sim_dir, args.reuse)
         cost: dict[str, list[float]] = {"with": [], "without": [], "with_stage_sum": [], "without_stage_sum": [],
                                         "merge": []}
@@ -141,20 +151,20 @@ def main(argv: list[str] | None = None) -> int:
                 off, wall = run_once(sim_dir, case_dir / "result_off", "off")
                 cost["without"].append(wall)
                 cost["without_stage_sum"].append(sum(off.values()))
-                stages, wall = run_once(sim_dir, res_dir, args.source)
+                stages, wall = run_once(sim_dir, res_dir, args.source, args.sets)
                 cost["with"].append(wall)
                 cost["with_stage_sum"].append(sum(stages.values()))
                 cost["merge"].append(stages.get("merge", 0.0))
         else:
-            stages, _ = run_once(sim_dir, res_dir, args.source)
+            stages, _ = run_once(sim_dir, res_dir, args.source, args.sets)
         rep = evaluate_result(sim_dir / "ground_truth.json", res_dir).to_dict()
         plain = plain_ransac_grounds(sim_dir, res_dir, args.seed)
         cases.append({"scenario": sc, "trees": args.trees, "rate_hz": args.rate, "seed": args.seed,
-                      "source": args.source, "stages": stages, "trunks": rep["trunks"], "grounds": rep["grounds"],
+                      "source": args.source, "sets": args.sets, "stages": stages, "trunks": rep["trunks"], "grounds": rep["grounds"],
                       "plain_ransac": plain, "cost_s": cost})
 
     tab = Table(title=f"trunks and local grounds ({args.source} masks), {args.trees} trees, {args.rate:g} Hz, "
-                      f"seed {args.seed}", title_justify="left")
+                      f"seed {args.seed}" + (f", {' '.join(args.sets)}" if args.sets else ""), title_justify="left")
     for col in ("scenario", "side", "recall %", "precision %", "diam MAE mm (3D-only)", "diam bias mm (3D-only)",
                 "axis deg", "ground deg med/max: prior | plain", "ground mm med/max: prior | plain",
                 "trees off (>5 deg or >3 cm): prior | plain", "trunk stage s"):
