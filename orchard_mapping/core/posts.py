@@ -274,10 +274,14 @@ def separate_trunks_from_posts(trunks: list[TrunkLandmark], posts: list[PostLand
         for p, a in zip(posts, axes):
             if p.id in drop_posts:
                 continue
-            # m, the trunk's foot to the post's axis line: the post's place is halfway up what its views saw
-            # (metres above the foot), where a trunk axis off by a degree or two would miss it by centimetres
+            # m, the trunk's foot to the post's axis line, or the post's place to the trunk's axis line, the
+            # nearer: the post's place is halfway up what its views saw (metres above the foot), where an axis
+            # off by a degree or two misses by centimetres. Either axis can be the one off: the trunk's of a
+            # short band, the post's mean of few views (slope_weeds seed 1, back side, flip test: a post's
+            # views' mean axis 4 deg off put its foot 138 mm from the trunk it had been called in 3 frames;
+            # along the trunk's axis the two are 17 mm apart).
             rel = t.base - p.place
-            gap = float(np.linalg.norm(rel - (rel @ a) * a))
+            gap = min(float(np.linalg.norm(rel - (rel @ a) * a)), float(np.linalg.norm(rel - (rel @ t.axis) * t.axis)))
             if gap > p.radius_m + (p.radius_m if r_trunk is None else r_trunk) + SAME_OBJECT_TOL_M:
                 continue
             as_post, as_trunk = len(p.observations), len(t.observations)
