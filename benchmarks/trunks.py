@@ -33,6 +33,7 @@ import statistics
 import subprocess
 import sys
 import time
+from collections.abc import Sequence
 from pathlib import Path
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
@@ -65,7 +66,7 @@ def simulate_case(scenario: str, trees: int, rate: float, seed: int, sim_dir: Pa
     console.print(f"simulated {scenario} in {time.perf_counter() - t0:.0f} s")
 
 
-def run_once(sim_dir: Path, out: Path, source: str, sets: list[str] = ()) -> tuple[dict[str, float], float]:
+def run_once(sim_dir: Path, out: Path, source: str, sets: Sequence[str] = ()) -> tuple[dict[str, float], float]:
     """(the run's stages, s; the wall-clock seconds of the whole `orchard-map run` command, its start and
     writing included). The command is what is timed, as a user runs it (its worker process and BLAS threads
     are set up there). Stages overlap (the detector beside the front end, the trunk worker), so they can add
@@ -160,8 +161,8 @@ def main(argv: list[str] | None = None) -> int:
         rep = evaluate_result(sim_dir / "ground_truth.json", res_dir).to_dict()
         plain = plain_ransac_grounds(sim_dir, res_dir, args.seed)
         cases.append({"scenario": sc, "trees": args.trees, "rate_hz": args.rate, "seed": args.seed,
-                      "source": args.source, "sets": args.sets, "stages": stages, "trunks": rep["trunks"], "grounds": rep["grounds"],
-                      "plain_ransac": plain, "cost_s": cost})
+                      "source": args.source, "sets": args.sets, "stages": stages, "trunks": rep["trunks"],
+                      "grounds": rep["grounds"], "plain_ransac": plain, "cost_s": cost})
 
     tab = Table(title=f"trunks and local grounds ({args.source} masks), {args.trees} trees, {args.rate:g} Hz, "
                       f"seed {args.seed}" + (f", {' '.join(args.sets)}" if args.sets else ""), title_justify="left")

@@ -251,6 +251,11 @@ def post_shapes(sides: list[tuple[list[PostLandmark], np.ndarray]], pair_radius_
     return out
 
 
+def _across(v: np.ndarray, direction: np.ndarray) -> float:
+    """m, the part of v (3,) across the unit direction (3,): a point's distance to a line through the other."""
+    return float(np.linalg.norm(v - (v @ direction) * direction))
+
+
 def separate_trunks_from_posts(trunks: list[TrunkLandmark], posts: list[PostLandmark], poses: np.ndarray
                                ) -> tuple[list[TrunkLandmark], list[PostLandmark], list[str]]:
     """One side's trunk and post landmarks without the objects that are in both.
@@ -281,7 +286,7 @@ def separate_trunks_from_posts(trunks: list[TrunkLandmark], posts: list[PostLand
             # views' mean axis 4 deg off put its foot 138 mm from the trunk it had been called in 3 frames;
             # along the trunk's axis the two are 17 mm apart).
             rel = t.base - p.place
-            gap = min(float(np.linalg.norm(rel - (rel @ a) * a)), float(np.linalg.norm(rel - (rel @ t.axis) * t.axis)))
+            gap = min(_across(rel, a), _across(rel, t.axis))
             if gap > p.radius_m + (p.radius_m if r_trunk is None else r_trunk) + SAME_OBJECT_TOL_M:
                 continue
             as_post, as_trunk = len(p.observations), len(t.observations)
