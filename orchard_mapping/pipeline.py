@@ -29,6 +29,8 @@ from orchard_mapping.core.bundle_adjustment import BAResult, bundle_adjust_windo
 from orchard_mapping.core.cylinder import CylinderError, fit_cylinders_shared_radius
 from orchard_mapping.core.fusion import FusionResult, Region, fuse_side
 from orchard_mapping.core.merge import HeightPrior, InitialTransform, SemanticPair, initial_transform
+from orchard_mapping.core.geometric_trunks import (column_detections, columns_to_model, detection_places,
+                                                   find_trunk_candidates)
 from orchard_mapping.core.geometry import SlabIndex, matrix_to_quat, move_with_keyframes
 from orchard_mapping.core.odometry import RGBDFrontEnd
 from orchard_mapping.core.semantic_ba import (HeightAnchor, SemanticBAResult, SideShapes, TrunkShape, semantic_bundle_adjust,
@@ -331,6 +333,13 @@ def finish_side_geometry(job: SideHandover, timings: Timings) -> tuple[SideMap, 
         fused = fuse_keyframes(job.images, frame_index, ba.poses, intr, cfg, views)
         points, colors = fused.points, fused.colors
         timings.add(f"fusion_{side}", time.perf_counter() - t0)
+        if cfg.trunks.source != "off" and cfg.trunks.geometric != "off":
+            t0 = time.perf_counter()
+            n_columns = add_column_views(views, points, ba.poses, stamps, frame_index, job.images, intr, cfg)
+            timings.add(f"geometric_trunks_{side}", time.perf_counter() - t0)
+            if n_columns:
+                log.info("%s: %d trunk views made from the geometry of columns the detector %s", side, n_columns,
+                         "was not asked about" if cfg.trunks.geometric == "only" else "missed")
         # the detector ran beside the front end: its time overlaps the front end's stage
         timings.add(f"trunk_detection_{side}", job.detection_seconds)
         if views.post_views or cfg.trunks.source != "off":
@@ -418,6 +427,9 @@ def model_trunks(job: TrunkJob, post_model: "Callable[[], PostModel] | None" = N
         t0 = time.perf_counter()
         trunks = build_trunk_landmarks(job.points, job.poses, job.views, job.intrinsics, cfg.trunks, cfg.ground,
                                        np.random.default_rng(cfg.seed))
+        for t in trunks:
+            if t.observations and all(o.detection.source == "geometry" for o in t.observations):
+                t.flags.append(FOUND_BY_GEOMETRY)
         if job.post_views and post_model is not None:
             posts = take_posts(post_model())
         if posts:
@@ -453,6 +465,9 @@ def finish_side(job: SideHandover, timings: Timings) -> SideMap:
 
 
 PendingSide = Callable[[], SideMap]
+
+# trunk flag: every view of it was made from the geometry of a column (trunks.geometric), none by the detector
+FOUND_BY_GEOMETRY = "found_by_geometry"
 
 
 def finish_side_later(job: SideHandover, timings: Timings, worker: "TrunkWorker | None",
@@ -756,6 +771,44 @@ class TrunkViews:
         dets, rect = self._detections.pop(k)
         dets = [replace(d, mask=ImagePatch.crop(np.asarray(d.mask, bool), rect)) for d in dets]
         self.views.append(TrunkView(k, float(self.stamps[k]), self.poses[k], ImagePatch.crop(depth, rect), dets))
+
+
+def add_column_views(views: TrunkViews, points: np.ndarray, poses: np.ndarray, stamps: np.ndarray,
+                     frame_index: list[int], images: KeyframeImages, intr: CameraIntrinsics, cfg: OrchardConfig) -> int:
+    """Trunk views from geometry (trunks.geometric, core.geometric_trunks): the vertical round columns of the
+    fused cloud on the row line that the detector missed ("fill"; with "only" every column, the detector's trunk
+    views dropped) become trunk detections in the keyframes trunks.detect_every_m apart that see them (their
+    depth read again from `images`: only when there is such a column). Returns the detections added."""
+    tp = cfg.trunks
+    candidates = find_trunk_candidates(points, poses)
+    if tp.geometric == "only":
+        views.views.clear()
+    todo = columns_to_model(candidates, detection_places(views.views, intr), tp.min_observations,
+                            tp.associate_radius_m, only=tp.geometric == "only")
+    if not todo:
+        return 0
+    picks: dict[int, int] = {}  # frame index -> keyframe
+    last = None
+    for k, T in enumerate(poses):
+        if last is None or np.linalg.norm(T[:3, 3] - last) >= tp.detect_every_m - 1e-6:
+            picks[frame_index[k]] = k
+            last = T[:3, 3]
+    added = 0
+    for fi, depth, _ in images.frames(sorted(picks)):
+        k = picks[fi]
+        depth = np.where(depth <= cfg.fusion.depth_max_m, depth, np.float32(0.0))
+        dets = column_detections(todo, depth, poses[k], intr, cfg.odometry.depth_sigma_coeff, tp.min_mask_pixels,
+                                 cfg.fusion.depth_max_m)
+        if not dets:
+            continue
+        m = VIEW_MARGIN_PX + tp.edge_snap_px
+        boxes = np.array([d.box for d in dets])  # (D, 4) x1 y1 x2 y2 px
+        rect = (int(boxes[:, 1].min()) - m, int(boxes[:, 0].min()) - m, int(boxes[:, 3].max()) + m,
+                int(boxes[:, 2].max()) + m)
+        views.views.append(TrunkView(k, float(stamps[k]), poses[k], ImagePatch.crop(depth, rect),
+                                     [replace(d, mask=ImagePatch.crop(d.mask, rect)) for d in dets]))
+        added += len(dets)
+    return added
 
 
 def fuse_keyframes(images: KeyframeImages, frame_index: list[int], poses: np.ndarray, intr, cfg: OrchardConfig,

@@ -38,12 +38,13 @@ class Detection:
     score: float  # 0..1
     box: np.ndarray  # (4,) float px: x1 y1 x2 y2
     mask: np.ndarray  # (H, W) bool (an ImagePatch of it once the pipeline keeps the detection: core.types)
+    source: str = "model"  # what made it: "model" (the detector or given masks) or "geometry" (core.geometric_trunks)
 
     @staticmethod
-    def from_mask(mask: np.ndarray, class_id: int, score: float = 1.0) -> "Detection":
+    def from_mask(mask: np.ndarray, class_id: int, score: float = 1.0, source: str = "model") -> "Detection":
         v, u = np.nonzero(mask)
         box = np.array([u.min(), v.min(), u.max() + 1, v.max() + 1], float) if len(u) else np.zeros(4)
-        return Detection(class_id, float(score), box, np.asarray(mask, bool))
+        return Detection(class_id, float(score), box, np.asarray(mask, bool), source)
 
 
 def _paste(prob: np.ndarray, box: np.ndarray, H: int, W: int) -> np.ndarray:

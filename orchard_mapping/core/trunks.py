@@ -72,6 +72,10 @@ class TrunkParams:
     # The detector also sees each frame mirrored (test-time flip): more trunks found on scenes unlike the
     # training ones, at twice the detector's time; off for live use (models/README.md).
     flip_test: bool = False
+    # Trunks from geometry (core.geometric_trunks: vertical round columns of the fused cloud): "off" (the
+    # detector alone), "fill" (the detector, plus each column on the row line that it missed, modelled from
+    # the depth pixels on the column's cylinder), or "only" (geometry alone, no detector trunks; its posts stay).
+    geometric: str = "fill"
     input_width: int = 0  # px, the model's input size (0: the model's own, or the frame's if dynamic)
     input_height: int = 0
     threads: int = 2  # onnxruntime intra-op threads
@@ -117,6 +121,8 @@ class TrunkParams:
         for name in ("score_threshold", "mask_threshold", "max_mask_overlap"):
             if not 0.0 <= getattr(self, name) <= 1.0:
                 raise TrunkError(f"trunks.{name} must be in [0, 1], got {getattr(self, name)!r}")
+        if self.geometric not in ("off", "fill", "only"):
+            raise TrunkError(f"trunks.geometric must be 'off', 'fill' or 'only', got {self.geometric!r}")
         if self.view_depth not in ("raw", "cleaned"):
             raise TrunkError(f"trunks.view_depth must be 'raw' or 'cleaned', got {self.view_depth!r}")
         if self.edge_snap_px < 0:
