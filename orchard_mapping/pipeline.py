@@ -886,6 +886,12 @@ class MergeOutcome:
     seconds: dict[str, float]  # per step: alignment, initial_transform, semantic_ba (or icp)
 
 
+# MergeOutcome.method of a merge made without enough trunk pairs (alignment.fallback): the front views and each
+# side's trunk line alone; every tree of it carries the flag MERGED_BY_GLOBAL_FEATURES
+GLOBAL_FEATURES = "global_features"
+MERGED_BY_GLOBAL_FEATURES = "merged_by_global_features"
+
+
 def _ground_kind(lm: TrunkLandmark) -> int:
     """What a trunk's foot stands on: 2 its local ground, 1 the wider ground (no local one), 0 neither
     (its lowest visible point)."""
@@ -947,6 +953,8 @@ def merge_sides(front: SideMap, back: SideMap, cfg: OrchardConfig) -> MergeOutco
         return MergeOutcome("icp", T, pairs_icp, None, None, None, None, {"icp": time.perf_counter() - t0})
     al = align_sides(fa, ba, cfg.alignment, rng)
     seconds = {"alignment": time.perf_counter() - t0}
+    if al.method == "trunk_lines":  # too few trunks seen from both sides: the global features alone (flagged)
+        return MergeOutcome(GLOBAL_FEATURES, al.T_front_back, al.pairs, al, None, None, None, seconds)
     by_f = {t.id: t for t in front.trunks}
     by_b = {t.id: t for t in back.trunks}
     pairs = []
@@ -1137,6 +1145,11 @@ def merge_to_trees(sides: dict[str, SideMap], cfg: OrchardConfig, worker: "Trunk
     merged = merge_sides(sides["front"], sides["back"], cfg)
     clouds = clouds_in_map(merged, sides)
     trees = two_side_trees(merged, sides, cfg, clouds, worker)
+    if merged.method == GLOBAL_FEATURES:
+        log.warning("too few trunks seen from both sides for the semantic merge: the sides were merged from the "
+                    "global features alone (front views, each side's trunk line; error up to a trunk's width), "
+                    "every tree is flagged %s", MERGED_BY_GLOBAL_FEATURES)
+        trees = [replace(t, flags=t.flags + (MERGED_BY_GLOBAL_FEATURES,)) for t in trees]
     log.info("sides merged (%s) on %d trunk pairs%s", merged.method, len(merged.pairs),
              ": " + "; ".join(merged.alignment.log) if merged.alignment is not None else "")
     return merged, clouds, trees

@@ -81,6 +81,10 @@ class AlignmentParams:
     # pairs from which a smooth bend along the row (quadratic in X) is taken off the gaps before the check
     # above: a long row's own drift, not a sign of different trees (_bend_free_gaps)
     bend_min_pairs: int = 10
+    # With fewer than min_pairs trunks seen from both sides: "global_features" (the paper's alignment without
+    # pairs: the front views' CPD for the along-row shift, height and roll, each side's trunk line for depth and
+    # heading; the result is flagged, its error is a trunk's width rather than millimetres) or "refuse".
+    fallback: str = "global_features"
 
 
 @dataclass(frozen=True)
@@ -118,6 +122,9 @@ class SideAlignment:
     front: CanonicalFrame
     back: CanonicalFrame
     log: list[str] = field(default_factory=list)
+    # "trunk_pairs": the trunks seen from both sides set depth and heading; "trunk_lines": too few pairs, each
+    # side's own trunk line did (AlignmentParams.fallback)
+    method: str = "trunk_pairs"
 
 
 BOUNDARY_INLIER_M = 0.10  # m, boundary points farther from the other side's are parts only one side sees
@@ -547,11 +554,11 @@ class _Candidate:
     cpd: bool = True  # the front views were fitted by CPD (else the start shift was kept)
 
 
-def _from_shift(dx0: float, Bf: np.ndarray, Bb: np.ndarray, tf: np.ndarray, tb: np.ndarray, front: AlignmentSide,
-                back: AlignmentSide, scale_free: bool, params: AlignmentParams, use_cpd: bool = True) -> _Candidate:
-    """CPD of the front views from shift dx0 (or, use_cpd False, the shift as it is), then the top view from
-    the trunks paired along the row."""
-    log: list[str] = []
+def _front_view_fit(dx0: float, Bf: np.ndarray, Bb: np.ndarray, scale_free: bool, params: AlignmentParams,
+                    use_cpd: bool = True) -> tuple[np.ndarray, float, float, str, tuple[float, float]]:
+    """CPD of the front-view boundaries Bf, Bb (N, 2) from shift dx0 along the row (use_cpd False: the shift as
+    it is): (S (4, 4) front canonical <- back canonical, rotation about Z and X, Y shift only; scale; boundary
+    RMS m; a log line; the X range both cover at dx0)."""
     # CPD on the stretch both cover at this shift: given all of both boundaries it slides towards the
     # largest overlap, whatever the shift it started from (partial_overlap row: every start ended 1.85 m off).
     b0 = Bb + [dx0, 0.0]
@@ -574,10 +581,19 @@ def _from_shift(dx0: float, Bf: np.ndarray, Bb: np.ndarray, tf: np.ndarray, tb: 
     d, _ = cKDTree(Bf).query(Bb_al)
     inl = d < BOUNDARY_INLIER_M
     b_rms = float(np.sqrt(np.mean(d[inl] ** 2))) if inl.any() else float("nan")
-    log.append(("" if use_cpd else "no CPD (the start shift as it is): ") +
-               f"CPD: rotation about Z {np.degrees(np.arctan2(R2[1, 0], R2[0, 0])):+.2f} deg, "
-               f"t ({t2[0]:+.3f}, {t2[1]:+.3f}) m, scale {s:.4f}, sigma {1000 * np.sqrt(sigma2):.1f} mm, "
-               f"boundary RMS {1000 * b_rms:.1f} mm over {inl.mean():.0%} of the back boundary")
+    line = (("" if use_cpd else "no CPD (the start shift as it is): ") +
+            f"CPD: rotation about Z {np.degrees(np.arctan2(R2[1, 0], R2[0, 0])):+.2f} deg, "
+            f"t ({t2[0]:+.3f}, {t2[1]:+.3f}) m, scale {s:.4f}, sigma {1000 * np.sqrt(sigma2):.1f} mm, "
+            f"boundary RMS {1000 * b_rms:.1f} mm over {inl.mean():.0%} of the back boundary")
+    return S, float(s), b_rms, line, (float(x0), float(x1))
+
+
+def _from_shift(dx0: float, Bf: np.ndarray, Bb: np.ndarray, tf: np.ndarray, tb: np.ndarray, front: AlignmentSide,
+                back: AlignmentSide, scale_free: bool, params: AlignmentParams, use_cpd: bool = True) -> _Candidate:
+    """CPD of the front views from shift dx0 (or, use_cpd False, the shift as it is), then the top view from
+    the trunks paired along the row."""
+    S, s, b_rms, cpd_log, _ = _front_view_fit(dx0, Bf, Bb, scale_free, params, use_cpd)
+    log = [cpd_log]
     # Top view (X, Z): trunks paired along the row, then the rigid 2D fit of their axes (rotation about
     # Y, X and Z shift): the depth offset, and the yaw the front views cannot see.
     tb_al = tb @ S[:3, :3].T + S[:3, 3]
@@ -660,7 +676,10 @@ def align_sides(front: AlignmentSide, back: AlignmentSide, params: AlignmentPara
                 continue
             tried.append((cand.score_mm, dx0, cand))
     if not tried:
-        raise AlignmentError(failures[0] if failures else "no shift along the row aligns the sides' front views")
+        reason = failures[0] if failures else "no shift along the row aligns the sides' front views"
+        if params.fallback != "global_features" or not starts:
+            raise AlignmentError(reason)
+        return _align_by_trunk_lines(starts[0], Bf, Bb, tf, tb, front, back, cf, cb, scale_free, params, reason)
     tried.sort(key=lambda x: x[0])
     _, dx0, best = tried[0]
     if best.score_mm > params.max_disagreement_mm:
@@ -681,6 +700,92 @@ def align_sides(front: AlignmentSide, back: AlignmentSide, params: AlignmentPara
         pairs=tuple((int(front.trunk_ids[i]), int(back.trunk_ids[j])) for i, j, _ in pairs),
         pair_gaps_m=tuple(g for _, _, g in pairs), overlap_m=overlap, boundary_rms_m=b_rms,
         front=cf, back=cb, log=log)
+
+
+def _trunk_line(t: np.ndarray) -> tuple[float, float] | None:
+    """(depth Z at X = 0, dZ/dX) of the line through trunk points t (T, 3) in the top view (X, Z), a robust
+    fit (the median of the pairwise slopes, Theil-Sen); slope 0 from a single trunk; None without trunks."""
+    if len(t) == 0:
+        return None
+    if len(t) == 1:
+        return float(t[0, 2]), 0.0
+    i, j = np.triu_indices(len(t), 1)
+    dx = t[j, 0] - t[i, 0]
+    ok = np.abs(dx) > 0.3  # m: trunks of neighbouring trees, not one trunk found twice
+    slope = float(np.median((t[j, 2] - t[i, 2])[ok] / dx[ok])) if ok.any() else 0.0
+    return float(np.median(t[:, 2] - slope * t[:, 0])), slope
+
+
+def _mean_axis(axes: np.ndarray) -> np.ndarray:
+    """(3,) unit: the mean of unit axes (T, 3) pointing up (+Y of a canonical frame)."""
+    a = np.sum(axes * np.sign(axes[:, 1:2] + 1e-12), axis=0)
+    return a / np.linalg.norm(a)
+
+
+def _rotation_between(a: np.ndarray, b: np.ndarray) -> np.ndarray:
+    """(3, 3) the smallest rotation taking unit a (3,) onto unit b (3,) (Rodrigues)."""
+    v, c = np.cross(a, b), float(a @ b)
+    if np.linalg.norm(v) < 1e-12:
+        return np.eye(3)
+    K = np.array([[0, -v[2], v[1]], [v[2], 0, -v[0]], [-v[1], v[0], 0]])
+    return np.eye(3) + K + K @ K / (1.0 + c)
+
+
+def _align_by_trunk_lines(dx0: float, Bf: np.ndarray, Bb: np.ndarray, tf: np.ndarray, tb: np.ndarray,
+                          front: AlignmentSide, back: AlignmentSide, cf: CanonicalFrame, cb: CanonicalFrame,
+                          scale_free: bool, params: AlignmentParams, reason: str) -> SideAlignment:
+    """The alignment without trunk pairs (paper, "Alignment in Depth Direction using Trunk Information": the
+    median trunk planes): the front views' CPD from the best shift dx0 sets the along-row shift, height and roll;
+    each side's own trunks, seen from it alone, lie on the row's trunk line, and bringing the two lines
+    together in the top view sets the depth and, with two trunks or more on each side, the heading. The error
+    left is up to a trunk's width across the row; along the row the front views' (a tree's spacing where the
+    row repeats itself). The trunk pairs there are (fewer than min_pairs) set the along-row shift."""
+    lf, lb0 = _trunk_line(tf), _trunk_line(tb)
+    if lf is None or lb0 is None:
+        raise AlignmentError(f"{reason}; and no trunk line to align the depth on (front {len(tf)}, back "
+                             f"{len(tb)} trunks)")
+    try:
+        S, s, b_rms, cpd_log, (x0, x1) = _front_view_fit(dx0, Bf, Bb, scale_free, params)
+    except AlignmentError as err:
+        raise AlignmentError(f"{reason}; and without trunk pairs: {err}") from err
+    log = [f"fallback (alignment.fallback = global_features): {reason}", cpd_log]
+    # Tilt: the whole sides' ground planes differ by degrees (each side sees mostly its own strip), the trunks
+    # stand the same in both: the back trunks' mean axis is turned onto the front trunks' (about their centre).
+    af = _mean_axis(front.trunk_axis @ cf.T_canon_odom[:3, :3].T)
+    ab = _mean_axis(back.trunk_axis @ cb.T_canon_odom[:3, :3].T @ S[:3, :3].T)
+    tb_al = tb @ S[:3, :3].T + S[:3, 3]
+    Rt = _rotation_between(ab, af)
+    c_b = tb_al.mean(axis=0)
+    S = make_transform(Rt, c_b - Rt @ c_b) @ S
+    tb_al = tb @ S[:3, :3].T + S[:3, 3]
+    lb = _trunk_line(tb_al)
+    assert lb is not None
+    # heading: the two lines' slopes agree (only when each side has two trunks or more: one trunk has none)
+    yaw = float(np.arctan(lf[1]) - np.arctan(lb[1])) if len(tf) >= 2 and len(tb) >= 2 else 0.0
+    xm = 0.5 * (x0 + x1)  # the common stretch's middle: where the two lines are brought together
+    G = np.eye(4)
+    c, sn = np.cos(yaw), np.sin(yaw)
+    G[np.ix_([0, 2], [0, 2])] = [[c, -sn], [sn, c]]  # rotation about Y taking back slope onto front slope
+    p_b = np.array([xm, 0.0, lb[0] + lb[1] * xm])
+    p_b = G[:3, :3] @ p_b
+    G[2, 3] = (lf[0] + lf[1] * p_b[0]) - p_b[2]
+    S = G @ S
+    tb_al = tb @ S[:3, :3].T + S[:3, 3]
+    near = _pairs(tf, tb_al, 3 * params.pair_radius_m)
+    if near:  # trees seen from both sides (fewer than min_pairs): their trunks set the shift along the row
+        S[0, 3] += float(np.median([tf[i, 0] - tb_al[j, 0] for i, j, _ in near]))
+        tb_al = tb @ S[:3, :3].T + S[:3, 3]
+    pairs = _pairs(tf, tb_al, params.pair_radius_m)
+    log.append(f"front views from shift {dx0:+.2f} m; trunk lines "
+               f"(front {len(tf)}, back {len(tb)} trunks): heading {np.degrees(yaw):+.2f} deg, depth offset "
+               f"{G[2, 3]:+.3f} m; {len(pairs)} trunk pair(s) within {params.pair_radius_m:g} m after it")
+    T = np.linalg.inv(cf.T_canon_odom) @ S @ cb.T_canon_odom
+    overlap = (float(x0), float(x1))
+    return SideAlignment(
+        T_front_back=T, scale=float(s),
+        pairs=tuple((int(front.trunk_ids[i]), int(back.trunk_ids[j])) for i, j, _ in pairs),
+        pair_gaps_m=tuple(g for _, _, g in pairs), overlap_m=overlap, boundary_rms_m=b_rms,
+        front=cf, back=cb, log=log, method="trunk_lines")
 
 
 # --------------------------------------------------------------------------- baseline
