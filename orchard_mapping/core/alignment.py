@@ -683,11 +683,13 @@ def align_sides(front: AlignmentSide, back: AlignmentSide, params: AlignmentPara
     tried.sort(key=lambda x: x[0])
     _, dx0, best = tried[0]
     if best.score_mm > params.max_disagreement_mm:
-        raise AlignmentError(
-            f"the trunks the sides seem to share do not agree (best shift {dx0:+.2f} m along the row: median "
-            f"axis gap + diameter difference {best.score_mm:.1f} mm > {params.max_disagreement_mm:g} mm): "
-            "they are probably different trees (the sides cover different stretches of the row, or both "
-            "recordings are of the same side)")
+        reason = (f"the trunks the sides seem to share do not agree (best shift {dx0:+.2f} m along the row: median "
+                  f"axis gap + diameter difference {best.score_mm:.1f} mm > {params.max_disagreement_mm:g} mm): "
+                  "they are probably different trees (the sides cover different stretches of the row, or both "
+                  "recordings are of the same side)")
+        if params.fallback != "global_features":
+            raise AlignmentError(reason)
+        return _align_by_trunk_lines(starts[0], Bf, Bb, tf, tb, front, back, cf, cb, scale_free, params, reason)
     log.append(f"front-view X shift {dx0:+.2f} m, the best of {len(tried)} candidate(s) by trunk agreement "
                + ", ".join(f"{d:+.2f} m{'' if c.cpd else ' (no CPD)'}: {sc:.1f} mm" for sc, d, c in tried[:4]))
     log += best.log
@@ -714,6 +716,12 @@ def _trunk_line(t: np.ndarray) -> tuple[float, float] | None:
     ok = np.abs(dx) > 0.3  # m: trunks of neighbouring trees, not one trunk found twice
     slope = float(np.median((t[j, 2] - t[i, 2])[ok] / dx[ok])) if ok.any() else 0.0
     return float(np.median(t[:, 2] - slope * t[:, 0])), slope
+
+
+# trunks each side needs before their mean axis sets the tilt, and their line the heading, between the sides
+# (trunk_lines fallback; with fewer, the canonical frames' ground and row direction stand): trees lean and stand
+# off the row line by centimetres each
+TILT_MIN_TRUNKS = 4
 
 
 def _mean_axis(axes: np.ndarray) -> np.ndarray:
@@ -754,14 +762,14 @@ def _align_by_trunk_lines(dx0: float, Bf: np.ndarray, Bb: np.ndarray, tf: np.nda
     af = _mean_axis(front.trunk_axis @ cf.T_canon_odom[:3, :3].T)
     ab = _mean_axis(back.trunk_axis @ cb.T_canon_odom[:3, :3].T @ S[:3, :3].T)
     tb_al = tb @ S[:3, :3].T + S[:3, 3]
-    Rt = _rotation_between(ab, af)
+    Rt = _rotation_between(ab, af) if min(len(tf), len(tb)) >= TILT_MIN_TRUNKS else np.eye(3)
     c_b = tb_al.mean(axis=0)
     S = make_transform(Rt, c_b - Rt @ c_b) @ S
     tb_al = tb @ S[:3, :3].T + S[:3, 3]
     lb = _trunk_line(tb_al)
     assert lb is not None
     # heading: the two lines' slopes agree (only when each side has two trunks or more: one trunk has none)
-    yaw = float(np.arctan(lf[1]) - np.arctan(lb[1])) if len(tf) >= 2 and len(tb) >= 2 else 0.0
+    yaw = float(np.arctan(lf[1]) - np.arctan(lb[1])) if min(len(tf), len(tb)) >= TILT_MIN_TRUNKS else 0.0
     xm = 0.5 * (x0 + x1)  # the common stretch's middle: where the two lines are brought together
     G = np.eye(4)
     c, sn = np.cos(yaw), np.sin(yaw)

@@ -228,13 +228,42 @@ def test_trunks_are_paired_only_where_the_transform_puts_them_together():
     assert pair_trunks(front, back, shifted, 0.15) == ()
 
 
-def test_too_few_shared_trunks_is_a_typed_refusal():
+def test_too_few_shared_trunks_is_a_typed_refusal_when_the_fallback_is_off():
     rng = np.random.default_rng(3)
     world, bases, axes = _row(rng)
     front = _side(world, bases, axes, -2.0, _random_T(rng), rng, trunks=slice(0, 1))
     back = _side(world, bases, axes, 2.0, _random_T(rng), rng, trunks=slice(3, 6))
     with pytest.raises(AlignmentError, match="seen from both sides"):
-        align_sides(front, back, AlignmentParams(), np.random.default_rng(0))
+        align_sides(front, back, AlignmentParams(fallback="refuse"), np.random.default_rng(0))
+
+
+@pytest.mark.parametrize("seed", [0, 1, 2])
+@pytest.mark.parametrize("front_trunks,back_trunks", [(slice(0, 1), slice(3, 6)), (slice(1, 2), slice(4, 5)),
+                                                      (slice(0, 1), slice(0, 6))])
+def test_too_few_shared_trunks_are_merged_by_each_sides_trunk_line(seed, front_trunks, back_trunks):
+    """No tree (or one) seen from both sides: the front views, the trunks' mean axis and each side's own trunk
+    line still align the sides (the paper's global features), flagged as such; depth and heading from the
+    lines, the shift along the row from the front views (or the one shared tree)."""
+    rng = np.random.default_rng(seed)
+    world, bases, axes = _row(rng)
+    Twf, Twb = _random_T(rng), _random_T(rng)
+    front = _side(world, bases, axes, -2.0, Twf, rng, trunks=front_trunks)
+    back = _side(world, bases, axes, 2.0, Twb, rng, trunks=back_trunks, x_start=-2.0)
+    al = align_sides(front, back, AlignmentParams(), np.random.default_rng(seed))
+    assert al.method == "trunk_lines"
+    T_true = np.linalg.inv(Twf) @ Twb
+    dR = al.T_front_back[:3, :3] @ T_true[:3, :3].T
+    assert np.degrees(np.arccos(np.clip((np.trace(dR) - 1) / 2, -1, 1))) < 1.0
+    # every true trunk base (in odom_back) carried by the estimate vs the truth, split along / across the row
+    odom_b = np.linalg.inv(Twb)
+    pb = bases @ odom_b[:3, :3].T + odom_b[:3, 3]
+    err_front = (pb @ al.T_front_back[:3, :3].T + al.T_front_back[:3, 3]) - (pb @ T_true[:3, :3].T + T_true[:3, 3])
+    err_world = err_front @ Twf[:3, :3].T  # (T, 3) x along the row, y across, z up
+    # m across the row: the two trunk lines brought together; this row's trees stand +-3 cm (sd) off the line
+    # and lean +-3 deg, so lines through different trees differ by up to three sd
+    assert np.abs(err_world[:, 1]).max() < 0.12
+    assert np.abs(err_world[:, 2]).max() < 0.06  # m up: the canonical frames' ground (bumps of +-2 cm)
+    assert np.abs(err_world[:, 0]).max() < 0.05  # m along: the front views' CPD
 
 
 # --------------------------------------------------------------------------- initial transform (constraints 1-3)
