@@ -30,7 +30,7 @@ from orchard_mapping.core.cylinder import CylinderError, fit_cylinders_shared_ra
 from orchard_mapping.core.fusion import FusionResult, Region, fuse_side
 from orchard_mapping.core.merge import HeightPrior, InitialTransform, SemanticPair, initial_transform
 from orchard_mapping.core.geometric_trunks import (column_detections, columns_to_model, detection_places,
-                                                   find_trunk_candidates)
+                                                   find_trunk_candidates, mask_place, on_tree_column)
 from orchard_mapping.core.geometry import SlabIndex, matrix_to_quat, move_with_keyframes
 from orchard_mapping.core.odometry import RGBDFrontEnd
 from orchard_mapping.core.semantic_ba import (HeightAnchor, SemanticBAResult, SideShapes, TrunkShape, semantic_bundle_adjust,
@@ -783,6 +783,14 @@ def add_column_views(views: TrunkViews, points: np.ndarray, poses: np.ndarray, s
     candidates = find_trunk_candidates(points, poses)
     if tp.geometric == "only":
         views.views.clear()
+    # A post detection on a column that tapers or branches is a trunk the detector took for a post (its look
+    # unlike the training trunks'): it is not fitted as a post, and the column is modelled as a trunk below.
+    kept = [pv for pv in views.post_views
+            if not on_tree_column(mask_place(pv.mask, pv.depth, poses[pv.keyframe], intr), candidates)]
+    if len(kept) < len(views.post_views):
+        log.info("%d post detections lie on columns shaped as trunks (tapering or branching): not posts",
+                 len(views.post_views) - len(kept))
+        views.post_views[:] = kept
     todo = columns_to_model(candidates, detection_places(views.views, intr), tp.min_observations,
                             tp.associate_radius_m, only=tp.geometric == "only")
     if not todo:

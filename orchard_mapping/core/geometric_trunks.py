@@ -40,8 +40,7 @@ from orchard_mapping.core.types import CameraIntrinsics
 from orchard_mapping.errors import AlignmentError
 
 __all__ = ["TrunkCandidate", "column_detections", "columns_to_model", "cylinder_mask", "detection_places",
-           "find_trunk_candidates",
-           "row_frame"]
+           "find_trunk_candidates", "mask_place", "on_tree_column", "row_frame"]
 
 GROUND_CELL_M = 0.25  # m, cells of the ground height
 GROUND_PERCENTILE = 5.0  # the ground is the low end of a cell's heights (flying pixels are rarer than 5 %)
@@ -370,19 +369,35 @@ def column_detections(cands: list[TrunkCandidate], depth: np.ndarray, T_odom_cam
     return out
 
 
+def mask_place(mask: np.ndarray, depth: np.ndarray, T_odom_cam: np.ndarray, intr: CameraIntrinsics
+               ) -> np.ndarray | None:
+    """(3,) m odom: the median of a mask's depth pixels (H, W) in the keyframe T_odom_cam (as trunk association
+    places a detection); None without depth in the mask."""
+    rows, cols = np.nonzero(np.asarray(mask) & (np.asarray(depth) > 0))
+    if len(rows) == 0:
+        return None
+    z = np.asarray(depth)[rows, cols].astype(float)
+    pc = np.stack([(cols - intr.cx) / intr.fx * z, (rows - intr.cy) / intr.fy * z, z], axis=1)
+    return np.median(pc @ T_odom_cam[:3, :3].T + T_odom_cam[:3, 3], axis=0)
+
+
 def detection_places(views: list, intr: CameraIntrinsics) -> np.ndarray:
-    """(N, 3) m odom: each trunk detection of views (core.trunks.TrunkView) placed at its depth pixels' median
-    (as trunk association places it)."""
-    out = []
-    for v in views:
-        depth = np.asarray(v.depth)
-        for det in v.detections:
-            if det.class_id != CLASS_TRUNK:
-                continue
-            rows, cols = np.nonzero(np.asarray(det.mask) & (depth > 0))
-            if len(rows) == 0:
-                continue
-            z = depth[rows, cols].astype(float)
-            pc = np.stack([(cols - intr.cx) / intr.fx * z, (rows - intr.cy) / intr.fy * z, z], axis=1)
-            out.append(np.median(pc @ v.T_odom_cam[:3, :3].T + v.T_odom_cam[:3, 3], axis=0))
-    return np.array(out).reshape(-1, 3)
+    """(N, 3) m odom: each trunk detection of views (core.trunks.TrunkView) at its depth pixels' median."""
+    places = [mask_place(det.mask, v.depth, v.T_odom_cam, intr) for v in views for det in v.detections
+              if det.class_id == CLASS_TRUNK]
+    return np.array([p for p in places if p is not None]).reshape(-1, 3)
+
+
+def on_tree_column(place: np.ndarray | None, cands: list[TrunkCandidate]) -> bool:
+    """Whether a detection placed at place (3,) m odom (None: no depth) lies on a column that is not post-like (a
+    trunk by its shape: tapering or branching): within the column's radius plus 5 cm of its axis, across up (a
+    post may stand a hand's width from a tree)."""
+    if place is None:
+        return False
+    for c in cands:
+        if c.post_like:
+            continue
+        rel = place - c.axis_point(0.3)
+        if np.linalg.norm(rel - (rel @ c.up) * c.up) < c.radius_m + 0.05:
+            return True
+    return False

@@ -8,7 +8,7 @@ import pytest
 
 from orchard_mapping.core.detection import CLASS_TRUNK
 from orchard_mapping.core.geometric_trunks import (TrunkCandidate, column_detections, columns_to_model,
-                                                   cylinder_mask, find_trunk_candidates)
+                                                   cylinder_mask, find_trunk_candidates, on_tree_column)
 from orchard_mapping.core.geometry import make_transform
 from orchard_mapping.core.types import CameraIntrinsics
 
@@ -121,3 +121,13 @@ def test_a_column_makes_a_mask_of_its_depth_pixels_in_a_keyframe():
     assert iou > 0.85
     dets = column_detections([cand], depth, T, INTR, 0.004, 150, 3.0)
     assert len(dets) == 1 and dets[0].source == "geometry" and dets[0].class_id == CLASS_TRUNK
+
+
+def test_a_detection_on_a_tapering_column_is_on_a_tree_and_one_on_the_post_is_not():
+    points, poses, trees, post = _side_cloud(1)
+    cands = find_trunk_candidates(points, poses)
+    for centre, r in trees:  # the face of each trunk towards the cameras, at 0.4 m
+        assert on_tree_column(centre + [0.0, -r, 0.4], cands)
+    assert not on_tree_column(post + [0.0, -0.05, 0.4], cands)
+    assert not on_tree_column(trees[0][0] + [0.3, -0.3, 0.4], cands)  # a hand's width off: a post beside it
+    assert not on_tree_column(None, cands)
