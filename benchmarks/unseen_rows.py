@@ -140,7 +140,7 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--set", action="append", default=[], help="config override passed to orchard-map run")
     args = ap.parse_args(argv)
     os.environ.setdefault("ROS_AUTOMATIC_DISCOVERY_RANGE", "LOCALHOST")
-    console = Console()
+    console = Console(width=150)
     records = []
     for k in range(args.rows):
         rec = run_row(k, args, console)

@@ -6,7 +6,9 @@ domain the product is never trained or tuned on. It differs from `render.py` in 
 * geometry: points (no meshes, no ray casting). Every scene point is projected; the nearest point per pixel
   wins a z-buffer (`np.minimum.at` over pixel indices); each winning point then covers a disc of radius
   `fx * r / z` pixels (r: its own splat radius in metres, from the point spacing), again nearest depth first,
-  done as image shifts over the disc's offsets (radius-aware dilation of the z-buffer).
+  done as image shifts over the disc's offsets (radius-aware dilation of the z-buffer). Trunk and post
+  points splat smaller where their surface is seen obliquely (discs tangent to the surface), so their
+  silhouettes are not widened.
 * colour: per-point albedo and a view-independent sky/sun shading model, precomputed once.
 * sensor (`StereoSensor`): stereo-like depth (noise on disparity with sub-pixel quantisation, so the depth sd
   grows with z^2 by a coefficient of its own; holes in low texture, in the stereo occlusion shadow beside
@@ -92,6 +94,8 @@ class SplatRenderer:
         self.near, self.far = near_m, far_m
         self._xyz = scene.xyz.astype(np.float32)
         self._xyzT = np.ascontiguousarray(self._xyz.T)
+        self._normalT = np.ascontiguousarray(scene.normal.T, dtype=np.float32)
+        self._oriented = np.isin(scene.cls, [PCls.TRUNK, PCls.POST])
         self._radiance = _shade(scene)
         R = self.max_radius_px
         offs = [(dy, dx, float(np.hypot(dy, dx))) for dy in range(-R, R + 1) for dx in range(-R, R + 1)]
@@ -113,8 +117,20 @@ class SplatRenderer:
         u = np.rint(np.float32(K.fx) * x * iz + np.float32(K.cx)).astype(np.int64)
         v = np.rint(np.float32(K.fy) * y * iz + np.float32(K.cy)).astype(np.int64)
         inside = (u >= -R) & (u < W + R) & (v >= -R) & (v < H + R)
-        sel, u, v, z = sel[inside], u[inside], v[inside], z[inside]
-        rpx = np.clip(K.fx * self.scene.radius[sel] / z, 0.5, R + 0.5).astype(np.float32)
+        sel, u, v, z, x, y = sel[inside], u[inside], v[inside], z[inside], x[inside], y[inside]
+        r_m = self.scene.radius[sel]
+        o = self._oriented[sel]
+        if o.any():
+            # Solid surfaces (trunks, posts) splat as discs tangent to the surface, seen edge-on at their
+            # silhouettes: the footprint shrinks with |cos| of the view angle (approximated as a smaller
+            # round disc) instead of widening the silhouette by a whole radius.
+            so = sel[o]
+            p = np.stack([x[o], y[o], z[o]])
+            nc = Rt @ self._normalT[:, so]
+            cos = np.abs(np.einsum("ij,ij->j", nc, p)) / np.linalg.norm(p, axis=0)
+            r_m = r_m.copy()
+            r_m[o] *= np.float32(0.3) + np.float32(0.7) * cos
+        rpx = np.clip(K.fx * r_m / z, 0.5, R + 0.5).astype(np.float32)
         # z-buffer on a padded image (points just outside the frame still splat into it)
         Hp, Wp = H + 2 * R, W + 2 * R
         pix = (v + R) * Wp + (u + R)

@@ -30,7 +30,7 @@ def _wall(depth: float, spacing: float, half: float = 3.0) -> PointScene:
     n = x.size
     xyz = np.column_stack([x.ravel(), y.ravel(), np.full(n, depth)])
     return PointScene(xyz.astype(np.float32), np.full(n, spacing, np.float32), np.full((n, 3), 0.5, np.float32),
-                      np.tile(np.float32([0, 0, -1]), (n, 1)), np.full(n, PCls.POST, np.uint8),
+                      np.tile(np.float32([0, 0, -1]), (n, 1)), np.full(n, PCls.GROUND, np.uint8),
                       np.full(n, 7, np.int32))
 
 
@@ -41,7 +41,7 @@ def test_flat_wall_at_its_depth_without_holes():
     f = r.render(np.eye(4))  # camera at the origin looking along +z (the wall's normal)
     assert (f.depth > 0).all()
     np.testing.assert_allclose(f.depth, 2.0, atol=1e-5)
-    assert (f.cls == PCls.POST).all() and (f.inst == 7).all() and (f.index >= 0).all()
+    assert (f.cls == PCls.GROUND).all() and (f.inst == 7).all() and (f.index >= 0).all()
     # Each pixel's point is the one nearest to its ray (within one splat radius).
     u, v = np.meshgrid(np.arange(K.width), np.arange(K.height))
     ray_x = (u - K.cx) / K.fx * 2.0
