@@ -52,14 +52,16 @@ COLUMN_MIN_FILL = 0.5  # share of the band's slices a column cell must hold poin
 RADIUS_RANGE_M = (0.015, 0.125)  # m, trunks 3-25 cm across
 MAX_CLUSTER_M = 0.30  # m, a group of column cells wider than this is a hedge, wall or weed mass
 MIN_ARC_DEG = 80.0  # deg of the circle the arc covers (one side sees up to 180)
-MAX_RMS_FRACTION = 0.25  # circle residual RMS, of the radius (and at least MIN_RMS_M)
-MIN_RMS_M = 0.006
+MAX_RMS_FRACTION = 0.3  # circle residual RMS, of the radius (and at least MIN_RMS_M)
+MIN_RMS_M = 0.009
 MAX_TILT_DEG = 20.0  # deg, axis vs up
 POST_MIN_TOP_M = 1.4  # m: a bare, straight column of one radius this high is a post
 UPPER_SLICE_M = (0.9, 1.3)  # m above the ground: where a post-like column's radius is measured again
 POST_MIN_RADIUS_RATIO = 0.85  # that radius, of the band's, at least: untapered
 POST_MIN_SHELL = 0.6  # share of the points around the column there on the band's shell: bare
 MASK_TOP_M = 0.9  # m above the ground: a column's mask ends here (the clear trunk and a little of the leader)
+MASK_GROW_PX = 1  # px each way: the depth pixels on a column stop 1-2 px short of its silhouette (no depth at the edge);
+# std6 row, geometry alone: diameter bias -1.78 mm as they are, +0.60 grown by 1 px, +2.5 by 2 (the edge snap does the rest)
 
 
 @dataclass(frozen=True)
@@ -321,7 +323,10 @@ def cylinder_mask(cand: TrunkCandidate, depth: np.ndarray, T_odom_cam: np.ndarra
     on = (np.abs(radial - cand.radius_m) < tol) & (along_axis >= 0.0) & (along_axis <= top_m - 0.05)
     mask = np.zeros((H, W), bool)
     mask[vv[on] + r0, uu[on] + c0] = True
-    mask = cv2.morphologyEx(mask.astype(np.uint8), cv2.MORPH_CLOSE, np.ones((5, 5), np.uint8)).astype(bool)
+    mask = cv2.morphologyEx(mask.astype(np.uint8), cv2.MORPH_CLOSE, np.ones((5, 5), np.uint8))
+    if MASK_GROW_PX:
+        mask = cv2.dilate(mask, np.ones((1, 2 * MASK_GROW_PX + 1), np.uint8))
+    mask = mask.astype(bool)
     return mask
 
 
