@@ -38,6 +38,15 @@ def _fmt(v: Any, nd: int = 1, suffix: str = "") -> str:
     return "n/a" if v is None else f"{v:.{nd}f}{suffix}"
 
 
+def _product_state() -> dict[str, Any]:
+    """The commit the product ran at and the tracked files under orchard_mapping/ modified in the working tree
+    (other people's uncommitted edits are picked up by the editable install)."""
+    def git(*a: str) -> str:
+        return subprocess.run(["git", *a], cwd=ROOT, capture_output=True, text=True).stdout.strip()
+    return {"head": git("rev-parse", "--short", "HEAD"),
+            "modified": git("status", "--porcelain", "--untracked-files=no", "--", "orchard_mapping").splitlines()}
+
+
 def run_row(k: int, args: argparse.Namespace, console: Console) -> dict[str, Any]:
     motion = args.motions[k % len(args.motions)]
     seed = args.seed + k
@@ -45,7 +54,7 @@ def run_row(k: int, args: argparse.Namespace, console: Console) -> dict[str, Any
     sim_dir, out_dir = row_dir / "sim", row_dir / "out"
     spec = ScanRowSpec(n_trees=args.trees, motion=motion, rate_hz=args.rate)
     rec: dict[str, Any] = {"row": k, "motion": motion, "seed": seed, "trees": args.trees, "rate_hz": args.rate,
-                           "dir": str(row_dir)}
+                           "dir": str(row_dir), "product": _product_state()}
     if args.reuse and (sim_dir / "ground_truth.json").is_file():
         rec["generate_s"] = None
     else:
