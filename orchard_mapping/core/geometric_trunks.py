@@ -17,7 +17,10 @@ to the first branches. This module finds such columns in the fused cloud of one 
    of the band's lower and upper halves agree).
 4. Above the band: a trunk tapers and branches into the canopy; a trellis post goes on straight and bare
    to well above the cameras. A column whose shell of the same radius stays filled to POST_MIN_TOP_M and
-   that is still one circle of about its radius at UPPER_SLICE_M is flagged `post_like`.
+   that is still one circle of about its radius at UPPER_SLICE_M is flagged `post_like`; one whose shell ends
+   below that height, or whose points there fit no circle of its radius (a leader with branches and leaves), is
+   `tree_like`. A column that is neither (a straight column of its radius, but too noisy to call bare) is left
+   to the detector.
 
 The pipeline (`orchard_mapping.pipeline`) turns each candidate the detector missed into trunk views: in the
 keyframes that see it, the depth pixels on its cylinder form a mask (`cylinder_mask`), and the trunk is then
@@ -62,6 +65,9 @@ UPPER_SLICE_M = (0.9, 1.3)  # m above the ground: where a post-like column's cir
 # there fit no circle: 6-tree standard and slope_weeds rows (seeds 3, 4), every trunk 13.7-21.5 mm RMS but one
 # (8.7 mm, its circle 1.8 times the band's); every post 2.0-9.2 mm.
 POST_RADIUS_CHANGE = 0.25
+# Tree-like there: no circle of the band's radius (the two trunks of those rows whose circle there kept their
+# radius within 25 % spread 21.4 and 21.5 mm); between the post and tree limits the detector decides.
+TREE_RMS_FACTOR = 2.0
 POST_MAX_RMS_M = 0.010
 POST_MAX_RMS_FRACTION = 0.2
 MASK_TOP_M = 0.9  # m above the ground: a column's mask ends here (the clear trunk and a little of the leader)
@@ -81,7 +87,8 @@ class TrunkCandidate:
     arc_deg: float  # deg of the circle seen
     rms_m: float  # circle residual RMS, m
     n_points: int  # band points on the column
-    post_like: bool
+    post_like: bool  # straight, untapered and bare to POST_MIN_TOP_M
+    tree_like: bool  # ends below POST_MIN_TOP_M, or tapers or branches into clutter above the band
     lateral_m: float  # m across the row from the camera path (positive: away from the cameras)
 
     def axis_point(self, height_m: float) -> np.ndarray:
@@ -228,19 +235,21 @@ def find_trunk_candidates(points: np.ndarray, poses: np.ndarray) -> list[TrunkCa
         ax = np.array([(x2 - x1) / max(dz, 1e-3), (y2 - y1) / max(dz, 1e-3), 1.0])
         ax /= np.linalg.norm(ax)
         g0 = float(np.median(g[idx]))
-        top, post_like = _column_top(a, b, hg, xc, yc, r, ax)
+        top, post_like, tree_like = _column_top(a, b, hg, xc, yc, r, ax)
         base_rf = np.array([xc, yc, g0 + mid]) - mid * ax / ax[2]  # down the axis from the band's middle
         lateral = float(yc - np.median(near_cam[:, 1]))
         out.append(TrunkCandidate(base=R.T @ base_rf, axis=R.T @ ax, up=up, radius_m=r, top_m=top,
                                   arc_deg=arc, rms_m=rms, n_points=len(idx), post_like=post_like,
+                                  tree_like=tree_like,
                                   lateral_m=lateral))
     out.sort(key=lambda c: float(c.base @ along))
     return _dedup(out)
 
 
 def _column_top(a: np.ndarray, b: np.ndarray, hg: np.ndarray, xc: float, yc: float, r: float, ax: np.ndarray
-                ) -> tuple[float, bool]:
-    """(top m above the ground where the shell of radius r around the column stops being filled, post-like).
+                ) -> tuple[float, bool, bool]:
+    """(top m above the ground where the shell of radius r around the column stops being filled, post-like,
+    tree-like).
     The shell is read in 5 cm slices upward from the band; a gap of three empty slices ends it. Post-like: the
     shell goes on to POST_MIN_TOP_M and the column keeps its radius there (UPPER_SLICE_M): a post is
     untapered, while a trunk's leader above the first branches is a fraction of its width."""
@@ -263,13 +272,14 @@ def _column_top(a: np.ndarray, b: np.ndarray, hg: np.ndarray, xc: float, yc: flo
             if gap >= 3:
                 break
     if top < POST_MIN_TOP_M:
-        return float(top), False
+        return float(top), False, True
     upper = (hg >= UPPER_SLICE_M[0]) & (hg < UPPER_SLICE_M[1]) & (d < r + 0.04)
     if upper.sum() < 30:
-        return float(top), False
+        return float(top), False, False
     _, _, r_hi, rms_hi = _fit_circle(a[upper] - ax[0] * s[upper], b[upper] - ax[1] * s[upper])
-    untapered = abs(r_hi - r) <= POST_RADIUS_CHANGE * r and rms_hi <= max(POST_MAX_RMS_M, POST_MAX_RMS_FRACTION * r)
-    return float(top), bool(untapered)
+    limit = max(POST_MAX_RMS_M, POST_MAX_RMS_FRACTION * r)
+    same_radius = abs(r_hi - r) <= POST_RADIUS_CHANGE * r
+    return float(top), bool(same_radius and rms_hi <= limit), bool(not same_radius or rms_hi > TREE_RMS_FACTOR * limit)
 
 
 def _dedup(cands: list[TrunkCandidate]) -> list[TrunkCandidate]:
@@ -343,7 +353,7 @@ def columns_to_model(cands: list[TrunkCandidate], detected: np.ndarray, min_dete
     median); a column with at least min_detections of them within radius_m (across the up direction) is the
     detector's. The row line is the median distance across the row of the columns the detector agrees on
     (of all columns when it agrees on fewer than two)."""
-    trees = [c for c in cands if not c.post_like]
+    trees = [c for c in cands if c.tree_like]
     if not trees:
         return []
     up = trees[0].up
@@ -396,14 +406,14 @@ def detection_places(views: list, intr: CameraIntrinsics) -> np.ndarray:
     return np.array([p for p in places if p is not None]).reshape(-1, 3)
 
 
-def on_tree_column(place: np.ndarray | None, cands: list[TrunkCandidate]) -> bool:
-    """Whether a detection placed at place (3,) m odom (None: no depth) lies on a column that is not post-like (a
-    trunk by its shape: tapering or branching): within the column's radius plus 5 cm of its axis, across up (a
-    post may stand a hand's width from a tree)."""
+def on_tree_column(place: np.ndarray | None, cands: list[TrunkCandidate], post_like: bool = False) -> bool:
+    """Whether a detection placed at place (3,) m odom (None: no depth) lies on a tree-like column (a trunk by its
+    shape: tapering or branching), or with post_like True on a post-like one: within the column's radius plus
+    5 cm of its axis, across up (a post may stand a hand's width from a tree)."""
     if place is None:
         return False
     for c in cands:
-        if c.post_like:
+        if not (c.post_like if post_like else c.tree_like):
             continue
         rel = place - c.axis_point(0.3)
         if np.linalg.norm(rel - (rel @ c.up) * c.up) < c.radius_m + 0.05:

@@ -69,6 +69,7 @@ def test_trunks_are_found_and_the_post_is_told_apart(seed):
     cands = find_trunk_candidates(points, poses)
     posts = [c for c in cands if c.post_like]
     trunks = sorted((c for c in cands if not c.post_like), key=lambda c: c.base[0])
+    assert all(c.tree_like for c in trunks) and not posts[0].tree_like
     assert len(posts) == 1 and np.linalg.norm(posts[0].base[:2] - post[:2]) < 0.02
     assert len(trunks) == len(trees)  # no weed, leaf cluster or canopy taken for a trunk
     for c, (centre, r) in zip(trunks, trees):
@@ -89,7 +90,7 @@ def test_columns_the_detector_found_are_left_to_it_and_only_the_row_line_is_kept
     assert len(columns_to_model(cands, detected, 3, 0.25, only=True)) == 4
     # a column 0.6 m off the row line (a stake by the cameras' path) is not a tree of the row
     off = TrunkCandidate(np.array([3.0, -0.6, 0.0]), np.array([0.0, 0.0, 1.0]), np.array([0.0, 0.0, 1.0]), 0.03,
-                         0.8, 180.0, 0.002, 300, False, 0.7)
+                         0.8, 180.0, 0.002, 300, False, True, 0.7)
     assert not any(c is off for c in columns_to_model(cands + [off], detected, 3, 0.25, only=True))
 
 
@@ -97,7 +98,7 @@ def test_a_column_makes_a_mask_of_its_depth_pixels_in_a_keyframe():
     """A 4 cm trunk 1.2 m in front of the camera, on a flat ground, rendered as depth: the mask holds the trunk's
     pixels between 5 cm and 0.9 m above the ground, not the ground or the wall behind."""
     cand = TrunkCandidate(np.array([0.0, 1.2, 0.0]), np.array([0.0, 0.0, 1.0]), np.array([0.0, 0.0, 1.0]), 0.04,
-                          1.5, 180.0, 0.002, 500, False, 1.2)
+                          1.5, 180.0, 0.002, 500, False, True, 1.2)
     z_cam, y_opt = np.array([0.0, 1.0, 0.0]), np.array([0.0, 0.0, -1.0])
     T = make_transform(np.stack([np.cross(y_opt, z_cam), y_opt, z_cam], 1), np.array([0.0, 0.0, 0.6]))
     u, v = np.meshgrid(np.arange(640.0), np.arange(480.0))
@@ -131,3 +132,5 @@ def test_a_detection_on_a_tapering_column_is_on_a_tree_and_one_on_the_post_is_no
     assert not on_tree_column(post + [0.0, -0.05, 0.4], cands)
     assert not on_tree_column(trees[0][0] + [0.3, -0.3, 0.4], cands)  # a hand's width off: a post beside it
     assert not on_tree_column(None, cands)
+    assert on_tree_column(post + [0.0, -0.05, 0.4], cands, post_like=True)  # the post, asked for posts
+    assert not on_tree_column(trees[1][0] + [0.0, -trees[1][1], 0.4], cands, post_like=True)
