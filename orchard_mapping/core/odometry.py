@@ -24,8 +24,9 @@ the `tilted` scenario (2.5 deg hand jitter, 9 deg roll; 3 trees, 15 Hz, seed
 with 0 losses; on `standard` it never triggers (same poses, same time).
 
 When tracking fails (blank frames, motion blur, a hand over the lens) the
-front end re-localises against the last keyframe with ORB descriptors and
-logs it; frames it cannot place keep a NaN pose.
+front end re-localises against the last keyframes with ORB descriptors and
+logs it, and tracks on from the relocalisation's inlier matches (see
+_track_relocalised); frames it cannot place keep a NaN pose.
 """
 
 from __future__ import annotations
