@@ -1120,8 +1120,10 @@ def two_side_trees(m: MergeOutcome, sides: dict[str, SideMap], cfg: OrchardConfi
             shared = _two_side_ground(near, Tt, pos, r, cfg, rng)
             if shared is not None:
                 pos = shared.point
-        else:
-            pos = 0.5 * (f.base + T_fb[:3, :3] @ b.base + T_fb[:3, 3])
+        else:  # the feet on the best ground either side has (as above), each side's carried into map
+            feet = [(_ground_kind(f), f.base), (_ground_kind(b), T_fb[:3, :3] @ b.base + T_fb[:3, 3])]
+            best = max(kind for kind, _ in feet)
+            pos = np.mean([p for kind, p in feet if kind == best], axis=0)
         diameter, flags = None, []
         if k in band_pairs:
             diameter = (worker.result(elsewhere[k], two_side_diameter, band_pairs[k]) if k in elsewhere

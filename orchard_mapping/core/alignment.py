@@ -724,6 +724,18 @@ def _trunk_line(t: np.ndarray) -> tuple[float, float] | None:
 TILT_MIN_TRUNKS = 4
 
 
+def _path_heading(c: np.ndarray) -> float | None:
+    """rad: the direction in the top view (X, Z) of a camera path c (K, 3) (canonical frame), the angle of its
+    first principal axis from X, in (-pi/2, pi/2]; None for a path shorter than 0.5 m or not straight."""
+    xz = c[:, [0, 2]] - c[:, [0, 2]].mean(axis=0)
+    if len(xz) < 3:
+        return None
+    _, sv, Vt = np.linalg.svd(xz, full_matrices=False)
+    if np.ptp(xz @ Vt[0]) < 0.5 or sv[1] > 0.2 * sv[0]:
+        return None
+    return float((np.arctan2(Vt[0, 1], Vt[0, 0]) + np.pi / 2) % np.pi - np.pi / 2)
+
+
 def _mean_axis(axes: np.ndarray) -> np.ndarray:
     """(3,) unit: the mean of unit axes (T, 3) pointing up (+Y of a canonical frame)."""
     a = np.sum(axes * np.sign(axes[:, 1:2] + 1e-12), axis=0)
@@ -759,33 +771,57 @@ def _align_by_trunk_lines(dx0: float, Bf: np.ndarray, Bb: np.ndarray, tf: np.nda
     log = [f"fallback (alignment.fallback = global_features): {reason}", cpd_log]
     # Tilt: the whole sides' ground planes differ by degrees (each side sees mostly its own strip), the trunks
     # stand the same in both: the back trunks' mean axis is turned onto the front trunks' (about their centre).
-    af = _mean_axis(front.trunk_axis @ cf.T_canon_odom[:3, :3].T)
-    ab = _mean_axis(back.trunk_axis @ cb.T_canon_odom[:3, :3].T @ S[:3, :3].T)
+    # The trees both sides saw (paired along the row: X only, the depth is not known yet) are the same trunks;
+    # else, with TILT_MIN_TRUNKS a side, their leans average out.
+    axes_f = front.trunk_axis @ cf.T_canon_odom[:3, :3].T
+    axes_b = back.trunk_axis @ cb.T_canon_odom[:3, :3].T @ S[:3, :3].T
     tb_al = tb @ S[:3, :3].T + S[:3, 3]
-    Rt = _rotation_between(ab, af) if min(len(tf), len(tb)) >= TILT_MIN_TRUNKS else np.eye(3)
+    along = _pairs(tf * [1, 1, 0], tb_al * [1, 1, 0], 3 * params.pair_radius_m)
+    many = min(len(tf), len(tb)) >= TILT_MIN_TRUNKS
+    Rt = np.eye(3)
+    if along:
+        Rt = _rotation_between(_mean_axis(axes_b[[j for _, j, _ in along]]), _mean_axis(axes_f[[i for i, _, _ in along]]))
+    elif many:
+        Rt = _rotation_between(_mean_axis(axes_b), _mean_axis(axes_f))
     c_b = tb_al.mean(axis=0)
     S = make_transform(Rt, c_b - Rt @ c_b) @ S
     tb_al = tb @ S[:3, :3].T + S[:3, 3]
     lb = _trunk_line(tb_al)
     assert lb is not None
-    # heading: the two lines' slopes agree (only when each side has two trunks or more: one trunk has none)
-    yaw = float(np.arctan(lf[1]) - np.arctan(lb[1])) if min(len(tf), len(tb)) >= TILT_MIN_TRUNKS else 0.0
+    c_b = tb_al.mean(axis=0)
+    # Heading: the two trunk lines' slopes agree (with TILT_MIN_TRUNKS a side); else the two camera paths, which
+    # run along the row, are made parallel (the canonical frames' row direction, a principal direction of each
+    # cloud, is off by 26 deg on a 1-tree row 1.3 m long, where the hedge behind is as long as the row).
+    if many:
+        yaw = float(np.arctan(lf[1]) - np.arctan(lb[1]))
+    else:
+        hf = _path_heading(front.poses[:, :3, 3] @ cf.T_canon_odom[:3, :3].T)
+        hb = _path_heading(back.poses[:, :3, 3] @ cb.T_canon_odom[:3, :3].T @ S[:3, :3].T)
+        yaw = 0.0 if hf is None or hb is None else float((hf - hb + np.pi / 2) % np.pi - np.pi / 2)
     xm = 0.5 * (x0 + x1)  # the common stretch's middle: where the two lines are brought together
-    G = np.eye(4)
     c, sn = np.cos(yaw), np.sin(yaw)
-    G[np.ix_([0, 2], [0, 2])] = [[c, -sn], [sn, c]]  # rotation about Y taking back slope onto front slope
-    p_b = np.array([xm, 0.0, lb[0] + lb[1] * xm])
-    p_b = G[:3, :3] @ p_b
-    G[2, 3] = (lf[0] + lf[1] * p_b[0]) - p_b[2]
+    Ry = np.eye(3)
+    Ry[np.ix_([0, 2], [0, 2])] = [[c, -sn], [sn, c]]  # rotation about Y taking the back heading onto the front
+    G = make_transform(Ry, c_b - Ry @ c_b)  # about the back trunks' centre: their place along the row stays
+    S = G @ S
+    tb_al = tb @ S[:3, :3].T + S[:3, 3]
+    lb = _trunk_line(tb_al)
+    assert lb is not None
+    G = np.eye(4)
+    G[2, 3] = (lf[0] + lf[1] * xm) - (lb[0] + lb[1] * xm)  # the back line onto the front one there
     S = G @ S
     tb_al = tb @ S[:3, :3].T + S[:3, 3]
     near = _pairs(tf, tb_al, 3 * params.pair_radius_m)
-    if near:  # trees seen from both sides (fewer than min_pairs): their trunks set the shift along the row
+    if near:  # trees seen from both sides (fewer than min_pairs): their trunks set the shift along the row, and
+        # their feet (each on its side's ground under the tree) the height, which the front views set to a few cm
         S[0, 3] += float(np.median([tf[i, 0] - tb_al[j, 0] for i, j, _ in near]))
+        foot_f = front.trunk_base @ cf.T_canon_odom[:3, :3].T + cf.T_canon_odom[:3, 3]
+        foot_b = (back.trunk_base @ cb.T_canon_odom[:3, :3].T + cb.T_canon_odom[:3, 3]) @ S[:3, :3].T + S[:3, 3]
+        S[1, 3] += float(np.median([foot_f[i, 1] - foot_b[j, 1] for i, j, _ in near]))
         tb_al = tb @ S[:3, :3].T + S[:3, 3]
     pairs = _pairs(tf, tb_al, params.pair_radius_m)
     log.append(f"front views from shift {dx0:+.2f} m; trunk lines "
-               f"(front {len(tf)}, back {len(tb)} trunks): heading {np.degrees(yaw):+.2f} deg, depth offset "
+               f"(front {len(tf)}, back {len(tb)} trunks): heading {np.degrees(yaw):+.2f} deg, then a depth offset "
                f"{G[2, 3]:+.3f} m; {len(pairs)} trunk pair(s) within {params.pair_radius_m:g} m after it")
     T = np.linalg.inv(cf.T_canon_odom) @ S @ cb.T_canon_odom
     overlap = (float(x0), float(x1))

@@ -18,8 +18,8 @@ to the first branches. This module finds such columns in the fused cloud of one 
 4. Above the band: a trunk tapers and branches into the canopy; a trellis post goes on straight and bare
    to well above the cameras. A column whose shell of the same radius stays filled to POST_MIN_TOP_M and
    that is still one circle of about its radius at UPPER_SLICE_M is flagged `post_like`; one whose shell ends
-   below that height, or whose points there fit no circle of its radius (a leader with branches and leaves), is
-   `tree_like`. A column that is neither (a straight column of its radius, but too noisy to call bare) is left
+   below that height with something seen above it, or whose points there fit no circle of its radius (a leader
+   with branches and leaves), is `tree_like`. A column that is neither (a straight column of its radius, but too noisy to call bare) is left
    to the detector.
 
 The pipeline (`orchard_mapping.pipeline`) turns each candidate the detector missed into trunk views: in the
@@ -271,15 +271,21 @@ def _column_top(a: np.ndarray, b: np.ndarray, hg: np.ndarray, xc: float, yc: flo
             gap += 1
             if gap >= 3:
                 break
-    if top < POST_MIN_TOP_M:
-        return float(top), False, True
-    upper = (hg >= UPPER_SLICE_M[0]) & (hg < UPPER_SLICE_M[1]) & (d < r + 0.04)
-    if upper.sum() < 30:
-        return float(top), False, False
+    # Ended low: a trunk into its canopy if something is seen above it there; else perhaps the view ended (a
+    # side recorded with a level sweep only sees 1.1 m up: its posts ended there on the 1-tree test row).
+    ended_low = top < POST_MIN_TOP_M and int(np.sum((hg > top + 0.15) & (hg < 3.0) & (d < r + 0.15))) >= 20
+    # The column's circle again above the band (lower where the shell ends lower, e.g. out of view).
+    hi = min(UPPER_SLICE_M[1], top)
+    lo = min(UPPER_SLICE_M[0], hi - 0.3)
+    upper = (hg >= lo) & (hg < hi) & (d < r + 0.04)
+    if lo < BAND_HI_M or upper.sum() < 30:
+        return float(top), False, ended_low
     _, _, r_hi, rms_hi = _fit_circle(a[upper] - ax[0] * s[upper], b[upper] - ax[1] * s[upper])
     limit = max(POST_MAX_RMS_M, POST_MAX_RMS_FRACTION * r)
     same_radius = abs(r_hi - r) <= POST_RADIUS_CHANGE * r
-    return float(top), bool(same_radius and rms_hi <= limit), bool(not same_radius or rms_hi > TREE_RMS_FACTOR * limit)
+    post_like = top >= POST_MIN_TOP_M and same_radius and rms_hi <= limit
+    tree_like = ended_low or not same_radius or rms_hi > TREE_RMS_FACTOR * limit
+    return float(top), bool(post_like), bool(tree_like)
 
 
 def _dedup(cands: list[TrunkCandidate]) -> list[TrunkCandidate]:

@@ -262,7 +262,9 @@ def test_too_few_shared_trunks_are_merged_by_each_sides_trunk_line(seed, front_t
     # m across the row: the two trunk lines brought together; this row's trees stand +-3 cm (sd) off the line
     # and lean +-3 deg, so lines through different trees differ by up to three sd
     assert np.abs(err_world[:, 1]).max() < 0.12
-    assert np.abs(err_world[:, 2]).max() < 0.06  # m up: the canonical frames' ground (bumps of +-2 cm)
+    # m up: the canonical frames' ground (bumps of +-2 cm), or with a tree seen from both sides its two axis fits
+    # (each +-0.3 deg here) over the 9 m row
+    assert np.abs(err_world[:, 2]).max() < 0.10
     assert np.abs(err_world[:, 0]).max() < 0.05  # m along: the front views' CPD
 
 
