@@ -22,13 +22,18 @@ SETUP_INPUTS := requirements.lock setup.py setup.cfg package.xml \
                 scripts/setup.sh cmake/fix_wheel_includes.cmake \
                 $(shell find orchard_mapping_msgs vendor -type f 2>/dev/null)
 
-.PHONY: setup test test-portable demo bench fixtures clean train-setup
+.PHONY: setup lint test test-portable demo bench fixtures clean train-setup
 
 setup: $(STAMP)
 
 $(STAMP): $(SETUP_INPUTS)
 	bash scripts/setup.sh
 	touch $@
+
+# ruff (pinned in requirements.lock, rules in ruff.toml); any finding fails. `.ci/run` runs it before the tests.
+LINT_PATHS := orchard_mapping/ benchmarks/ test/ scripts/
+lint: setup
+	$(VENV)/bin/ruff check $(LINT_PATHS)
 
 # pytest exit 5 means "no tests collected": report it plainly and fail.
 # -p no:dash: the pytest plugin of dash (pulled in by open3d) is not ours.
