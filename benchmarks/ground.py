@@ -52,8 +52,6 @@ from rich.table import Table
 
 import orchard_mapping.core.trunks as trunks_module
 from orchard_mapping.config import load_config
-from orchard_mapping.sim.scenario import load_scenario
-from orchard_mapping.sim.scene import build_scene, terrain_plane
 from orchard_mapping.core.geometry import matrix_to_quat
 from orchard_mapping.core.ground import GroundParams, fit_local_ground, fit_plane_plain_ransac
 from orchard_mapping.core.types import StampedTrajectory
@@ -61,6 +59,8 @@ from orchard_mapping.eval.ground_truth import load_ground_truth
 from orchard_mapping.eval.landmarks import _local_alignment, _plane_errors
 from orchard_mapping.io.bags import read_rgbd
 from orchard_mapping.pipeline import Timings, reconstruct_side
+from orchard_mapping.sim.scenario import load_scenario
+from orchard_mapping.sim.scene import build_scene, terrain_plane
 from trunks import simulate_case
 
 console = Console()

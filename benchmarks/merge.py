@@ -40,11 +40,10 @@ from rich.console import Console  # noqa: E402
 from rich.table import Table  # noqa: E402
 
 from orchard_mapping.config import load_config, parse_sets, unflatten  # noqa: E402
-from orchard_mapping.core.geometry import transform_points  # noqa: E402
+from orchard_mapping.core.geometry import matrix_to_quat, transform_points  # noqa: E402
+from orchard_mapping.core.types import StampedTrajectory  # noqa: E402
 from orchard_mapping.eval.evaluate import trunk_scene_points  # noqa: E402
 from orchard_mapping.eval.ground_truth import load_ground_truth  # noqa: E402
-from orchard_mapping.core.geometry import matrix_to_quat  # noqa: E402
-from orchard_mapping.core.types import StampedTrajectory  # noqa: E402
 from orchard_mapping.eval.metrics import map_merge_error, merge_error, rigid_rmse_mm, trajectory_between  # noqa: E402
 from orchard_mapping.pipeline import Timings, map_poses, merge_sides, open_sides, reconstruct_side, two_side_trees  # noqa: E402
 from orchard_mapping.sim.scenario import load_scenario  # noqa: E402

@@ -33,7 +33,6 @@ from rich.table import Table  # noqa: E402
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
 from merge import add_case_arguments, case_sides  # noqa: E402
-
 from orchard_mapping.core.cylinder import CylinderError  # noqa: E402
 from orchard_mapping.core.geometry import pose_matrices, transform_points  # noqa: E402
 from orchard_mapping.core.silhouette import TangentPlane, cylinder_from_silhouettes, outline_planes  # noqa: E402

@@ -45,7 +45,7 @@ from rich.table import Table
 from orchard_mapping.core.ground import GroundParams, fit_plane_plain_ransac, ground_neighbourhood
 from orchard_mapping.eval import evaluate_result
 from orchard_mapping.eval.ground_truth import load_ground_truth
-from orchard_mapping.eval.landmarks import _local_alignment, _plane_errors, trunk_errors
+from orchard_mapping.eval.landmarks import _plane_errors, trunk_errors
 from orchard_mapping.io.landmarks import read_grounds, read_trunks
 from orchard_mapping.io.results import read_timings, read_tum, trajectory_filename
 

@@ -14,8 +14,7 @@ import os
 import shutil
 import tempfile
 import time
-from collections.abc import Iterator
-from collections.abc import Callable
+from collections.abc import Callable, Iterator
 from concurrent.futures import Future, ThreadPoolExecutor
 from dataclasses import asdict, dataclass, field, replace
 from pathlib import Path
@@ -26,31 +25,55 @@ import numpy as np
 from orchard_mapping.config import OrchardConfig, dump_yaml
 from orchard_mapping.core.alignment import AlignmentSide, SideAlignment, align_sides, icp_merge, pair_trunks
 from orchard_mapping.core.bundle_adjustment import BAResult, bundle_adjust_windowed, optimise_pose_graph
-from orchard_mapping.core.cylinder import CylinderError, fit_cylinders_shared_radius
+from orchard_mapping.core.cylinder import Cylinder, CylinderError, fit_cylinders_shared_radius
+from orchard_mapping.core.detection import CLASS_POST, CLASS_TRUNK
 from orchard_mapping.core.fusion import FusionResult, Region, fuse_side
-from orchard_mapping.core.merge import HeightPrior, InitialTransform, SemanticPair, initial_transform
-from orchard_mapping.core.geometric_trunks import (column_detections, columns_to_model, detection_places,
-                                                   find_trunk_candidates, mask_place, on_tree_column)
+from orchard_mapping.core.geometric_trunks import (
+    column_detections,
+    columns_to_model,
+    detection_places,
+    find_trunk_candidates,
+    mask_place,
+    on_tree_column,
+)
 from orchard_mapping.core.geometry import SlabIndex, matrix_to_quat, move_with_keyframes
+from orchard_mapping.core.merge import HeightPrior, InitialTransform, SemanticPair, initial_transform
 from orchard_mapping.core.odometry import RGBDFrontEnd
-from orchard_mapping.core.semantic_ba import (HeightAnchor, SemanticBAResult, SideShapes, TrunkShape, semantic_bundle_adjust,
-                                             trunk_frame)
+from orchard_mapping.core.posts import build_post_landmarks, fit_post_view, post_shapes, separate_trunks_from_posts
+from orchard_mapping.core.semantic_ba import (
+    HeightAnchor,
+    SemanticBAResult,
+    SideShapes,
+    TrunkShape,
+    semantic_bundle_adjust,
+    trunk_frame,
+)
 from orchard_mapping.core.sidemap import FrontEndResult, LoopClosure, SideMap
 from orchard_mapping.core.sides import UTurnSides
-from orchard_mapping.core.cylinder import Cylinder
-from orchard_mapping.core.trunks import (TrunkLandmark, TrunkParams, TrunkView, build_trunk_landmarks,
-                                        ground_around_trunk)
-from orchard_mapping.core.detection import CLASS_POST, CLASS_TRUNK
-from orchard_mapping.core.posts import (build_post_landmarks, fit_post_view, post_shapes,
-                                       separate_trunks_from_posts)
+from orchard_mapping.core.trunks import (
+    TrunkLandmark,
+    TrunkParams,
+    TrunkView,
+    build_trunk_landmarks,
+    ground_around_trunk,
+)
 from orchard_mapping.core.types import CameraIntrinsics, ImagePatch, RGBDFrame, StampedTrajectory, mask_bounds
 from orchard_mapping.errors import AlignmentError, BagError, BagFormatError, MergeRefusedError
 from orchard_mapping.io.bags import RGBDSequence, read_rgbd
 from orchard_mapping.io.figures import RowView, write_row_png
 from orchard_mapping.io.landmarks import GROUNDS_JSON, TRUNKS_JSON, write_grounds, write_trunks
-from orchard_mapping.io.results import (SIDE_MERGE_JSON, TREES_CSV, TREES_JSON, ResultTree, atomic_write_text,
-                                       map_trajectory_filename, write_side_merge, write_timings, write_trees,
-                                       write_tum)
+from orchard_mapping.io.results import (
+    SIDE_MERGE_JSON,
+    TREES_CSV,
+    TREES_JSON,
+    ResultTree,
+    atomic_write_text,
+    map_trajectory_filename,
+    write_side_merge,
+    write_timings,
+    write_trees,
+    write_tum,
+)
 
 log = logging.getLogger(__name__)
 

@@ -36,8 +36,8 @@ import numpy as np
 from scipy import ndimage
 from scipy.spatial import Delaunay, cKDTree
 
-from orchard_mapping.core.ground import GroundParams, fit_local_ground
 from orchard_mapping.core.geometry import make_transform
+from orchard_mapping.core.ground import GroundParams, fit_local_ground
 from orchard_mapping.errors import AlignmentError
 
 __all__ = [

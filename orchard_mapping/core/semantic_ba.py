@@ -33,8 +33,8 @@ from dataclasses import dataclass, field
 
 import gtsam
 import numpy as np
-from scipy.spatial.transform import Rotation
 from gtsam.symbol_shorthand import B, F, G, P, T
+from scipy.spatial.transform import Rotation
 
 from orchard_mapping.core.bundle_adjustment import optimise_in_steps
 from orchard_mapping.errors import AlignmentError

@@ -29,10 +29,17 @@ from dataclasses import dataclass, field, replace
 
 import numpy as np
 
-from orchard_mapping.core.cylinder import (Cylinder, CylinderError, CylinderFit, CylinderView, fit_cylinder,
-                                           point_distance, refine_cone_axis)
-from orchard_mapping.core.geometry import SlabIndex, group_medians, transform_points
+from orchard_mapping.core.cylinder import (
+    Cylinder,
+    CylinderError,
+    CylinderFit,
+    CylinderView,
+    fit_cylinder,
+    point_distance,
+    refine_cone_axis,
+)
 from orchard_mapping.core.detection import CLASS_TRUNK, Detection
+from orchard_mapping.core.geometry import SlabIndex, group_medians, transform_points
 from orchard_mapping.core.ground import GroundParams, LocalGroundFit, fit_local_ground, ground_neighbourhood
 from orchard_mapping.core.odometry import backproject
 from orchard_mapping.core.types import CameraIntrinsics, ImagePatch, mask_bounds

@@ -16,6 +16,7 @@ from orchard_mapping.core.geometry import move_with_keyframes, pose_matrices, tr
 from orchard_mapping.core.types import StampedTrajectory
 from orchard_mapping.errors import AlignmentError, ResultFormatError
 from orchard_mapping.eval.ground_truth import GroundTruth, load_ground_truth
+from orchard_mapping.eval.landmarks import ground_errors, trunk_errors
 from orchard_mapping.eval.metrics import (
     DoubleCount,
     MergeError,
@@ -36,7 +37,6 @@ from orchard_mapping.eval.report import (
     TraitErrors,
     TreePair,
 )
-from orchard_mapping.eval.landmarks import ground_errors, trunk_errors
 from orchard_mapping.io.landmarks import GROUNDS_JSON, TRUNKS_JSON, read_grounds, read_trunks
 from orchard_mapping.io.results import (
     SIDE_MERGE_JSON,

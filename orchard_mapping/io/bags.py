@@ -31,8 +31,14 @@ import numpy as np
 import yaml
 from rosbags.highlevel import AnyReader, AnyReaderError
 from rosbags.rosbag1 import ReaderError as Reader1Error
-from rosbags.rosbag2 import ReaderError as Reader2Error
-from rosbags.rosbag2 import CompressionFormat, CompressionMode, StoragePlugin, Writer, WriterError
+from rosbags.rosbag2 import (
+    CompressionFormat,
+    CompressionMode,
+    ReaderError as Reader2Error,
+    StoragePlugin,
+    Writer,
+    WriterError,
+)
 
 from orchard_mapping.config import TopicsConfig
 from orchard_mapping.core.types import CameraIntrinsics, RGBDFrame

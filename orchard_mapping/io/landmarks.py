@@ -17,7 +17,7 @@ import numpy as np
 from orchard_mapping.core.cylinder import Cylinder
 from orchard_mapping.core.detection import CLASS_NAMES
 from orchard_mapping.core.trunks import TrunkLandmark
-from orchard_mapping.io.results import _array, _get, _integer, _mapping, _number, _fail, atomic_write_json, load_json
+from orchard_mapping.io.results import _array, _fail, _get, _integer, _mapping, _number, atomic_write_json, load_json
 
 __all__ = [
     "GROUNDS_JSON",

@@ -12,9 +12,10 @@ from __future__ import annotations
 
 from pathlib import Path
 
-from orchard_mapping.resources import config_dir
 from orchard_mapping.errors import OrchardMappingError
+from orchard_mapping.resources import config_dir
 from orchard_mapping.ros.supervisor import NodeSpec
+
 
 class GraphError(OrchardMappingError, ValueError):
     """A graph that cannot be started as asked (names what is wrong)."""

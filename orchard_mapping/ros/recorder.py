@@ -19,8 +19,8 @@ from pathlib import Path
 
 import rclpy
 from rclpy.node import Node
-from rclpy.utilities import remove_ros_args
 from rclpy.qos import DurabilityPolicy, QoSProfile, ReliabilityPolicy
+from rclpy.utilities import remove_ros_args
 
 from orchard_mapping.errors import BagError
 from orchard_mapping.io.bags import BagWriter

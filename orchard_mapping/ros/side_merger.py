@@ -34,7 +34,13 @@ import time
 from pathlib import Path
 
 import numpy as np
-from orchard_mapping_msgs.msg import LocalGroundArray, SideMap as SideMapMsg, SideMerge, TreeTraitsArray, TrunkCylinderArray
+from orchard_mapping_msgs.msg import (
+    LocalGroundArray,
+    SideMap as SideMapMsg,
+    SideMerge,
+    TreeTraitsArray,
+    TrunkCylinderArray,
+)
 from rclpy.node import Node
 from sensor_msgs.msg import PointCloud2
 from std_msgs.msg import String

@@ -26,10 +26,10 @@ from visualization_msgs.msg import Marker, MarkerArray
 
 from orchard_mapping.errors import ResultFormatError
 from orchard_mapping.io.results import ResultTree, write_trees
+from orchard_mapping.ros.graph import MERGED_TREES_TOPIC
 from orchard_mapping.ros.messages import stamp_header, trees_from_msg, trees_to_msg
 from orchard_mapping.ros.params import ConfigParameters
 from orchard_mapping.ros.qos import LATCHED
-from orchard_mapping.ros.graph import MERGED_TREES_TOPIC
 from orchard_mapping.ros.spin import StopNode, run_node
 
 __all__ = ["TREES_TOPIC", "TraitReporterNode", "main", "tree_markers"]

@@ -19,7 +19,6 @@ from orchard_mapping.sim.scenario import CameraSpec
 from orchard_mapping.sim.scene import Cls, Scene
 
 
-
 class SurfaceTexture:
     """Periodic multi-scale noise image, mapped onto surfaces by planar projection.
 

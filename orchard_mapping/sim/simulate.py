@@ -35,8 +35,8 @@ from orchard_mapping.sim.truth import (
     VisibilityAccumulator,
     alpha_complex_volume,
     diameter_at_height,
-    trunk_axis_at_height,
     tree_height,
+    trunk_axis_at_height,
 )
 
 log = logging.getLogger(__name__)

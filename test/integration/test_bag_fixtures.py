@@ -13,7 +13,6 @@ and their ground truth. These tests check that
 from __future__ import annotations
 
 import json
-import re
 import shlex
 from pathlib import Path
 

@@ -16,25 +16,24 @@ from pathlib import Path
 
 import numpy as np
 import pytest
-
 from typer.testing import CliRunner
 
 from orchard_mapping.cli.main import app
 from orchard_mapping.config import load_config
+from orchard_mapping.core.geometry import matrix_to_quat
 from orchard_mapping.core.odometry import RGBDFrontEnd
+from orchard_mapping.core.sidemap import SideMap
+from orchard_mapping.core.types import StampedTrajectory
 from orchard_mapping.errors import AlignmentError, BagError, BagFormatError
 from orchard_mapping.eval import evaluate_result
 from orchard_mapping.eval.ground_truth import load_ground_truth
 from orchard_mapping.eval.metrics import TrajectoryError, trajectory_error
 from orchard_mapping.io.bags import BagWriter, read_rgbd
-from orchard_mapping.io.results import read_trees, read_tum
-from orchard_mapping.core.types import StampedTrajectory
-from orchard_mapping.core.geometry import matrix_to_quat
-from orchard_mapping.core.sidemap import SideMap
-from orchard_mapping.io.sidemap_codec import decode_side_map, encode_side_map
-from orchard_mapping.ros.finisher import finish_in_child
 from orchard_mapping.io.landmarks import read_trunks
+from orchard_mapping.io.results import read_trees, read_tum
+from orchard_mapping.io.sidemap_codec import decode_side_map, encode_side_map
 from orchard_mapping.pipeline import SideSession, SpooledKeyframeImages, Timings, merge_sides, reconstruct_side, run
+from orchard_mapping.ros.finisher import finish_in_child
 from orchard_mapping.sim.scenario import load_scenario
 from orchard_mapping.sim.simulate import simulate
 

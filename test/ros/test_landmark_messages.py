@@ -10,9 +10,8 @@ import numpy as np
 import pytest
 
 pytest.importorskip("rclpy")
-from rclpy.serialization import deserialize_message, serialize_message  # noqa: E402
-
 from orchard_mapping_msgs.msg import LocalGroundArray, TrunkCylinderArray  # noqa: E402
+from rclpy.serialization import deserialize_message, serialize_message  # noqa: E402
 
 from orchard_mapping.core.cylinder import Cylinder, CylinderFit  # noqa: E402
 from orchard_mapping.core.ground import LocalGroundFit  # noqa: E402

@@ -14,9 +14,8 @@ from pathlib import Path
 import pytest
 
 rclpy = pytest.importorskip("rclpy")
-from rclpy.serialization import deserialize_message, serialize_message  # noqa: E402
-
 import orchard_mapping_msgs.msg as oms  # noqa: E402
+from rclpy.serialization import deserialize_message, serialize_message  # noqa: E402
 
 HERE = Path(__file__).resolve().parent
 TIMEOUT_S = 30.0

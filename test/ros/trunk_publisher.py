@@ -16,9 +16,8 @@ import threading
 import time
 
 import rclpy
-from rclpy.qos import DurabilityPolicy, HistoryPolicy, QoSProfile, ReliabilityPolicy
-
 from orchard_mapping_msgs.msg import TrunkCylinder, TrunkCylinderArray
+from rclpy.qos import DurabilityPolicy, HistoryPolicy, QoSProfile, ReliabilityPolicy
 
 QOS = QoSProfile(
     history=HistoryPolicy.KEEP_LAST,

@@ -8,8 +8,14 @@ import numpy as np
 import pytest
 from scipy.spatial.transform import Rotation
 
-from orchard_mapping.core.alignment import (AlignmentParams, AlignmentSide, align_sides, alpha_boundary, cpd_rigid_2d,
-                                            pair_trunks)
+from orchard_mapping.core.alignment import (
+    AlignmentParams,
+    AlignmentSide,
+    align_sides,
+    alpha_boundary,
+    cpd_rigid_2d,
+    pair_trunks,
+)
 from orchard_mapping.core.geometry import make_transform, rotation_angle_deg
 from orchard_mapping.core.merge import HeightPrior, MergeParams, SemanticPair, initial_transform
 from orchard_mapping.errors import AlignmentError

@@ -21,10 +21,10 @@ import pytest
 from scipy.spatial import cKDTree
 
 from orchard_mapping.core.fusion import (
+    MIXED_PIXEL_GAP_M,
     FusionError,
     FusionResult,
     TsdfFusion,
-    MIXED_PIXEL_GAP_M,
     clean_depth,
     fuse_side,
     remove_floating_pixels,

@@ -7,8 +7,14 @@ import numpy as np
 import pytest
 
 from orchard_mapping.core.detection import CLASS_TRUNK
-from orchard_mapping.core.geometric_trunks import (TrunkCandidate, column_detections, columns_to_model,
-                                                   cylinder_mask, find_trunk_candidates, on_tree_column)
+from orchard_mapping.core.geometric_trunks import (
+    TrunkCandidate,
+    column_detections,
+    columns_to_model,
+    cylinder_mask,
+    find_trunk_candidates,
+    on_tree_column,
+)
 from orchard_mapping.core.geometry import make_transform
 from orchard_mapping.core.types import CameraIntrinsics
 

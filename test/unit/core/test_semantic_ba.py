@@ -9,8 +9,15 @@ import pytest
 from scipy.spatial.transform import Rotation
 
 from orchard_mapping.core.geometry import make_transform
-from orchard_mapping.core.semantic_ba import (HeightAnchor, PostShape, SemanticBAParams, SideShapes, TrunkShape,
-                                            semantic_bundle_adjust, trunk_frame)
+from orchard_mapping.core.semantic_ba import (
+    HeightAnchor,
+    PostShape,
+    SemanticBAParams,
+    SideShapes,
+    TrunkShape,
+    semantic_bundle_adjust,
+    trunk_frame,
+)
 from orchard_mapping.errors import AlignmentError
 
 TREES_X = 0.75 + 1.5 * np.arange(6)  # m, along the row (map x); trunks at y = 0, ground z = 0
