@@ -389,6 +389,8 @@ class RGBDOdometryNode(Node):
             self.counts.finished.append(side)
             self.counts.side_map_latency_s[side] = round(time.monotonic() - ended, 3)
             self._publish_status()
+            self.get_logger().info(f"{side} side map published: {len(sm.keyframe_poses)} keyframes, "
+                                   f"{len(sm.cloud_points)} points, {len(sm.trunks)} trunks")
             self._check_wanted()
 
     def _check_wanted(self) -> None:
@@ -396,8 +398,6 @@ class RGBDOdometryNode(Node):
         wanted = self.get_parameter("exit_after_sides").value
         if wanted and len(self.counts.finished) + len(self.counts.failed) >= wanted:
             self._done.set()
-            self.get_logger().info(f"{side} side map published: {len(sm.keyframe_poses)} keyframes, "
-                                   f"{len(sm.cloud_points)} points, {len(sm.trunks)} trunks")
 
     def _publish_side_map(self, sm: SideMap) -> None:
         pubs = self._side_pubs(sm.side)
