@@ -13,7 +13,7 @@ from enum import IntEnum
 
 import numpy as np
 
-from orchard_mapping.sim.scenario import Scenario
+from orchard_mapping.sim.scenario import Scenario, TrunkSpec
 
 
 class Cls(IntEnum):
