@@ -22,6 +22,7 @@ import numpy as np
 
 from orchard_mapping.core.cylinder import Cylinder, CylinderError, fit_cylinder, point_distance
 from orchard_mapping.core.odometry import backproject
+from orchard_mapping.core.semantic_ba import PostShape, trunk_frame
 from orchard_mapping.core.trunks import TrunkLandmark, _associate
 from orchard_mapping.core.types import CameraIntrinsics
 
@@ -196,7 +197,7 @@ def pass_representatives(post: PostLandmark, poses: np.ndarray) -> list[PostObse
 
 
 def post_shapes(sides: list[tuple[list[PostLandmark], np.ndarray]], pair_radius_m: float = ASSOCIATE_RADIUS_M,
-                across_sides: bool = False) -> list[list["PostShape"]]:
+                across_sides: bool = False) -> list[list[PostShape]]:
     """What the semantic BA measures of the posts: per side (its landmarks, its keyframe poses (K, 4, 4)
     T_map_cam after the initial transform), one PostShape per pass. With across_sides, posts of different
     sides within pair_radius_m of each other across up (map) are one post; by default each side's posts
@@ -206,8 +207,6 @@ def post_shapes(sides: list[tuple[list[PostLandmark], np.ndarray]], pair_radius_
     their trunks, fitted with the silhouette terms, meet.) Every view of a post puts its frame's origin
     at the point of its own axis nearest the post's reference point (the mean of the views' centres), so
     that a view's tilt error is not levered by the metre between what a level and a raised view see."""
-    from orchard_mapping.core.semantic_ba import PostShape, trunk_frame
-
     reps = [[(lm, pass_representatives(lm, poses)) for lm in lms] for lms, poses in sides]
 
     def centres(k: int, obs: list[PostObservation]) -> np.ndarray:

@@ -106,6 +106,24 @@ def test_two_passes_make_one_landmark_and_the_shapes_share_a_reference():
     assert np.all(np.linalg.norm(origins[:, :2] - POST_XY, axis=1) < 0.008)
 
 
+def test_post_shapes_gives_the_semantic_bas_post_shapes_by_its_annotated_type():
+    """post_shapes' return annotation resolves (it named PostShape, imported only inside the function:
+    typing.get_type_hints raised NameError), and what it gives are those PostShapes; no posts, no shapes."""
+    import typing
+
+    from orchard_mapping.core.semantic_ba import PostShape
+
+    assert typing.get_type_hints(post_shapes)["return"] == list[list[PostShape]]
+    assert post_shapes([([], np.array([np.eye(4)])), ([], np.array([np.eye(4)]))]) == [[], []]
+    rng = np.random.default_rng(3)
+    odom = np.array([_camera(x, *LEVEL) for x in np.arange(-0.3, 0.31, 0.15)])
+    obs = [o for k, T in enumerate(odom)
+           if (o := fit_post_view(*_render(T, rng), INTR, T[:3, :3].T @ np.array([0.0, 0.0, 1.0]), k, rng))]
+    (post,) = build_post_landmarks(obs, odom)
+    (shapes,) = post_shapes([([post], odom)])
+    assert shapes and all(isinstance(s, PostShape) for s in shapes)
+
+
 def _trunk_landmark(i: int, base_x: float, n_obs: int, diameter_m: float | None = 0.07):
     from orchard_mapping.core.trunks import TrunkLandmark, TrunkObservation
 
