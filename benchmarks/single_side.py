@@ -218,10 +218,6 @@ def run_baseline(sim_dir: Path, cfg: OrchardConfig, method: str, ours: dict[str,
         true = gt.sides[side].trajectory
         at_kf = _errors(_subset(traj, np.array(ours["sides"][side]["keyframe_stamps"])), true)
         dur = gt.sides[side].duration_s
-        fe = per_side_fe.get(side)
-        # the front end's own words for every loss, relocalisation and restart (to explain each one)
-        events = [e for e in getattr(fe, "events", [])
-                  if "lost" in e or "relocalised" in e or "recovered" in e or "restarted" in e]
         out["sides"][side] = {
             **{k: at_kf[k] for k in ("drift_percent", "ate_percent", "ate_mm", "drift_mm", "final_rotation_error_deg")},
             "scored_poses": at_kf["n_poses"],
