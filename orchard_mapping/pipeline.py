@@ -992,7 +992,10 @@ def merge_sides(front: SideMap, back: SideMap, cfg: OrchardConfig) -> MergeOutco
         return MergeOutcome("icp", T, pairs_icp, None, None, None, None, {"icp": time.perf_counter() - t0})
     al = align_sides(fa, ba, cfg.alignment, rng)
     seconds = {"alignment": time.perf_counter() - t0}
-    if al.method == "trunk_lines":  # too few trunks seen from both sides: the global features alone (flagged)
+    # Too few trunks seen from both sides: the global features alone (flagged). When the fallback was taken because
+    # the candidate pairs disagreed and its own alignment pairs min_pairs trunks, those pairs go on to the initial
+    # transform and the semantic BA as usual (the steady scanned-tree row: 5.3 deg / 106 mm -> 1.0 deg / 38 mm).
+    if al.method == "trunk_lines" and len(al.pairs) < max(2, cfg.alignment.min_pairs):
         return MergeOutcome(GLOBAL_FEATURES, al.T_front_back, al.pairs, al, None, None, None, seconds)
     by_f = {t.id: t for t in front.trunks}
     by_b = {t.id: t for t in back.trunks}
@@ -1218,6 +1221,8 @@ def write_merge(out: Path, m: MergeOutcome, sides: dict[str, SideMap],
                      "huber_cost_final": it.cost_final, "boundary_rms_m": al.boundary_rms_m}
     overlap = {"trunks_front": len(sides["front"].trunks), "trunks_back": len(sides["back"].trunks),
                "pairs": len(m.pairs)}
+    if al is not None:  # "trunk_pairs", or "trunk_lines" where the alignment fell back (alignment.fallback)
+        extra["alignment_method"] = al.method
     if al is not None:
         overlap["x_range_m"] = list(al.overlap_m)
     write_side_merge(out / SIDE_MERGE_JSON, m.T_front_back, method=m.method, residuals=residuals,

@@ -410,3 +410,24 @@ def test_the_side_ground_is_fitted_again_with_more_below_only_where_the_first_fi
     up = cf.T_canon_odom[1, :3]  # the canonical frame's up: the slope's normal
     true_up = np.array([0.0, np.cos(np.radians(18.0)), np.sin(np.radians(18.0))])
     assert np.degrees(np.arccos(min(1.0, abs(float(up @ true_up))))) < 2.0
+
+
+def test_pairs_that_disagree_fall_back_and_the_fallback_pairs_the_trees_again():
+    """The candidate pairs disagree (here: one side's diameters read 3 cm wide, as a mask taking in leaves
+    would): the merge is not refused; the fallback's alignment pairs every tree again, which the pipeline then
+    refines with the initial transform and the semantic BA."""
+    import dataclasses
+
+    rng = np.random.default_rng(5)
+    world, bases, axes = _row(rng)
+    Twf, Twb = _random_T(rng), _random_T(rng)
+    front = _side(world, bases, axes, -2.0, Twf, rng)
+    back = _side(world, bases, axes, 2.0, Twb, rng, trunks=slice(None, None, -1), x_start=-2.0)
+    d = rng.uniform(0.05, 0.08, len(bases))
+    front = dataclasses.replace(front, trunk_diameter=d[front.trunk_ids])
+    back = dataclasses.replace(back, trunk_diameter=d[back.trunk_ids] + 0.03)
+    with pytest.raises(AlignmentError, match="do not agree"):
+        align_sides(front, back, AlignmentParams(fallback="refuse"), np.random.default_rng(0))
+    al = align_sides(front, back, AlignmentParams(), np.random.default_rng(0))
+    assert al.method == "trunk_lines"
+    assert sorted(al.pairs) == [(i, i) for i in range(len(bases))]
