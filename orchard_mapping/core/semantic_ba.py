@@ -387,7 +387,7 @@ def _add_posts(graph: gtsam.NonlinearFactorGraph, values: gtsam.Values, front: S
             continue
         sym, side, p = vs[0]
         values.insert(P(post), gtsam.Pose3(side.poses[p.keyframe] @ p.T_cam_post))
-        for sym, side, p in vs:
+        for sym, _side, p in vs:
             graph.add(gtsam.BetweenFactorPose3(sym(p.keyframe), P(post), gtsam.Pose3(p.T_cam_post), noise))
         n += 1
     return n

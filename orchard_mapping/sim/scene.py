@@ -204,7 +204,7 @@ def _canopy_profile(u: np.ndarray) -> np.ndarray:
 
 def build_scene(sc: Scenario, seed: int) -> Scene:
     rng = np.random.default_rng(seed)
-    row, tr, cp, fr, st = sc.row, sc.trunk, sc.canopy, sc.fruit, sc.structure
+    row, st = sc.row, sc.structure
     ap = sc.appearance
     mb = MeshBuilder()
 

@@ -277,7 +277,6 @@ def test_too_few_shared_trunks_are_merged_by_each_sides_trunk_line(seed, front_t
 # --------------------------------------------------------------------------- initial transform (constraints 1-3)
 
 def _pairs_under(T: np.ndarray, rng: np.random.Generator, n: int = 8, outlier: int | None = None):
-    R, t = T[:3, :3], T[:3, 3]
     Ti = np.linalg.inv(T)
     pairs = []
     for i in range(n):

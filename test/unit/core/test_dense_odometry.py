@@ -115,7 +115,7 @@ def test_bad_input_raises_typed_errors(recording):
         "no frames": [],
     }
     assert issubclass(DenseOdometryError, OrchardMappingError)
-    for what, bad in cases.items():
+    for _what, bad in cases.items():  # _what: the case, in a failure's traceback
         with pytest.raises(DenseOdometryError):
             dense_rgbd_odometry(bad)
     with pytest.raises(DenseOdometryError, match="method"):

@@ -28,7 +28,7 @@ def _masks() -> np.ndarray:
 
 
 def _model(write, path: Path, *, outputs: tuple[str, ...] = ("boxes", "labels", "scores", "masks"),
-           input_shape: list = [3, H, W], input_type: int = TensorProto.FLOAT, box_masks: bool = False,
+           input_shape: tuple[int, ...] | list[int] = (3, H, W), input_type: int = TensorProto.FLOAT, box_masks: bool = False,
            values: dict[str, np.ndarray] | None = None) -> Path:
     """write: the constant_detector fixture (test/conftest.py)."""
     values = values or {
@@ -38,7 +38,7 @@ def _model(write, path: Path, *, outputs: tuple[str, ...] = ("boxes", "labels", 
         # box-relative masks (Mask R-CNN's 28 x 28 per box) or masks pasted into the input image
         "masks": np.full((3, 1, 28, 28), 0.9, np.float32) if box_masks else _masks(),
     }
-    return write(path, values, outputs=outputs, input_shape=input_shape, input_type=input_type)
+    return write(path, values, outputs=outputs, input_shape=list(input_shape), input_type=input_type)
 
 
 def test_detections_are_thresholded_and_mapped_back_to_the_frame(tmp_path, constant_detector):

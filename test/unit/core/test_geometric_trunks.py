@@ -47,13 +47,13 @@ def _side_cloud(seed: int):
     gx, gy = gx.ravel(), gy.ravel()
     pts = [np.stack([gx, gy, _ground_z(gx, gy) + rng.normal(0, 0.003, gx.size)], 1)]
     trees = []
-    for i, x in enumerate([0.4, 1.5, 2.6, 3.9]):
+    for x in [0.4, 1.5, 2.6, 3.9]:
         y = rng.normal(0, 0.02)
         c = np.array([x, y, float(_ground_z(np.array(x), np.array(y)))])
         r = rng.uniform(0.03, 0.045)
         pts.append(_shell(rng, c, r, -0.02, 0.7, 2500, taper=-0.01))
         pts.append(_shell(rng, c + [0, 0, 0.7], 0.012, 0.0, 1.5, 600))  # the leader
-        for k in range(12):  # canopy: leaf clusters on branches from 0.65 m up
+        for _ in range(12):  # canopy: leaf clusters on branches from 0.65 m up
             pts.append(_blob(rng, c + [rng.uniform(-0.5, 0.5), rng.uniform(-0.4, 0.3), rng.uniform(0.65, 2.2)],
                              0.08, 300))
         trees.append((c, r))
