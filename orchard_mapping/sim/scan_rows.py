@@ -545,11 +545,11 @@ def _tree_truth(row: ScanRowScene, vis: dict[str, SplatVisibility], recorded: tu
         h_gn = (sl.centres - t.ground_point) @ t.ground_normal  # slice heights above the local ground
 
         def diam_at(h: float, half: float = 0.04) -> float:
-            m = np.abs(h_gn - h) <= half
+            m = np.abs(h_gn - h) <= half  # noqa: B023 - diam_at() is called within this iteration only
             if m.sum() < 2:
-                m = np.argsort(np.abs(h_gn - h))[:3]
-                m = np.isin(np.arange(len(h_gn)), m)
-            c = np.polyfit(h_gn[m], 2 * sl.radii[m], 1)
+                m = np.argsort(np.abs(h_gn - h))[:3]  # noqa: B023 - as above
+                m = np.isin(np.arange(len(h_gn)), m)  # noqa: B023 - as above
+            c = np.polyfit(h_gn[m], 2 * sl.radii[m], 1)  # noqa: B023 - as above
             return float(np.polyval(c, h))
 
         top = t.base + t.axis * (t.clear_height / float(t.axis @ t.ground_normal))
