@@ -74,7 +74,7 @@ def bench_simulator(frames: int, trees: int, seed: int, bag_dir: Path) -> tuple[
             if k == start:
                 setup["first frame (raycast scene)"] = t4 - t0
                 continue
-            for name, dt in zip(parts, (t1 - t0, t2 - t1, t3 - t2, t4 - t3)):
+            for name, dt in zip(parts, (t1 - t0, t2 - t1, t3 - t2, t4 - t3), strict=True):
                 parts[name].append(dt)
     med = {name: statistics.median(v) for name, v in parts.items()}
     med["frames"] = len(parts["render"])
@@ -103,7 +103,7 @@ def _print_table(title: str, header: tuple[str, ...], rows: list[tuple[str, ...]
         print(f"\n{title}")
         widths = [max(len(r[i]) for r in [header, *rows]) for i in range(len(header))]
         for r in [header, *rows]:
-            print("  ".join(cell.ljust(w) for cell, w in zip(r, widths)))
+            print("  ".join(cell.ljust(w) for cell, w in zip(r, widths, strict=True)))
         return
     table = Table(title=title)
     for i, h in enumerate(header):

@@ -161,7 +161,7 @@ def _tiled(sides: dict[str, Any], gt: Any, copies: int) -> tuple[dict[str, Any],
         true_bases = transform_points(T_odom_world, np.array([t.trunk_base for t in gt.trees]))
         nearest = [int(np.argmin(np.linalg.norm(true_bases - t.base, axis=1))) for t in sm.trunks]
         offset = np.zeros((copies, max([t.id for t in sm.trunks], default=-1) + 1))
-        for t, k in zip(sm.trunks, nearest):
+        for t, k in zip(sm.trunks, nearest, strict=True):
             offset[:, t.id] = tree_offset[:, k]
         # Each side's copies continue along that side's own estimate of the row (the line through its trunk
         # bases), not the true row: repeated in the true direction, the two sides' small relative heading
@@ -216,10 +216,10 @@ def _score(method: str, sides: dict[str, Any], gt: Any, repeat: int = 1) -> dict
     dist = np.linalg.norm(est - true_xyz[near], axis=1) if len(est) else np.zeros(0)
     ok = dist < 0.3
     rmse = rigid_rmse_mm(est[ok], true_xyz[near[ok]])
-    d_err = [1000 * (t.trunk_diameter_m - gt.trees[k].diameter_m) for t, k, o in zip(trees, near, ok)
+    d_err = [1000 * (t.trunk_diameter_m - gt.trees[k].diameter_m) for t, k, o in zip(trees, near, ok, strict=True)
              if o and t.trunk_diameter_m is not None]
     # The two-side diameter against each side's own, on the trees both sides measured (mm, MAE)
-    both = [(t, k) for t, k, o in zip(trees, near, ok) if o and t.trunk_diameter_m is not None and t.per_side
+    both = [(t, k) for t, k, o in zip(trees, near, ok, strict=True) if o and t.trunk_diameter_m is not None and t.per_side
             and all((t.per_side.get(sd) or {}).get("diameter_m") is not None for sd in ("front", "back"))]
 
     def mae(get: Any) -> float | None:

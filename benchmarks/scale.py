@@ -147,7 +147,8 @@ def print_table(rows: list[dict[str, Any]]) -> None:
     by = {(r["label"], r["trees"]): r for r in rows}
     ts = sorted({r["trees"] for r in rows})
     for label in dict.fromkeys(r["label"] for r in rows):
-        pairs = [(n, m) for n, m in zip(ts, ts[1:]) if (label, n) in by and (label, m) in by]
+        # each tree count with the next (ts[1:] is one shorter)
+        pairs = [(n, m) for n, m in zip(ts, ts[1:], strict=False) if (label, n) in by and (label, m) in by]
         for n, m in pairs:
             console.print(f"{label}: {m} trees / {n} trees: time x{by[label, m]['processing_s'] / by[label, n]['processing_s']:.2f}, "
                           f"peak memory x{by[label, m]['peak_mb'] / by[label, n]['peak_mb']:.2f}")

@@ -44,7 +44,7 @@ def _side_rows(sm: Any, gt: Any, side: str, half: float) -> dict[str, Any]:
     g = gt.sides[side]
     i, j = associate_stamps(np.asarray(sm.keyframe_stamps), np.asarray(g.trajectory.stamps), 0.005)
     true_pose = dict(zip(i.tolist(), g.T_world_odom @ pose_matrices(np.asarray(g.trajectory.positions)[j],
-                                                                   np.asarray(g.trajectory.quaternions)[j])))
+                                                                   np.asarray(g.trajectory.quaternions)[j]), strict=True))
     base = np.array([t.trunk_base for t in gt.trees]).reshape(-1, 3)
     top = np.array([t.trunk_top for t in gt.trees]).reshape(-1, 3)
     diam = np.array([t.diameter_m for t in gt.trees])

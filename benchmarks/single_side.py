@@ -158,8 +158,9 @@ def run_ours(sim_dir: Path, res_dir: Path, cfg: OrchardConfig) -> dict[str, Any]
     wall = time.perf_counter() - t0
     report = evaluate_result(sim_dir / "ground_truth.json", res_dir).to_dict()
     stages = dict(rr.timings.stages)
-    per_side_calls = dict(zip(SIDES, calls.values()))
-    per_side_fe = dict(zip(SIDES, FRONT_ENDS))
+    # the front ends in order of creation, one per side; strict=False: a side without one is left out
+    per_side_calls = dict(zip(SIDES, calls.values(), strict=False))
+    per_side_fe = dict(zip(SIDES, FRONT_ENDS, strict=False))
     out: dict[str, Any] = {"wall_s": wall, "stages_s": stages, "realtime_factor": (report.get("timings") or {}).get(
         "realtime_factor"), "sides": {}}
     for side in SIDES:

@@ -198,7 +198,7 @@ def main(argv: list[str] | None = None) -> int:
                           f"{statistics.median(c['cost_s']['without_stage_sum']):.1f} s")
             if c["cost_s"].get("merge"):
                 # the merge (and its outputs) ends the run: the run up to it is the trunk stage's own cost
-                wm = statistics.median(a - m for a, m in zip(c["cost_s"]["with"], c["cost_s"]["merge"]))
+                wm = statistics.median(a - m for a, m in zip(c["cost_s"]["with"], c["cost_s"]["merge"], strict=True))
                 console.print(f"{c['scenario']}: without the two-side merge that trunks make possible (its "
                               f"{statistics.median(c['cost_s']['merge']):.1f} s and outputs), with trunks {wm:.1f} s: "
                               f"ratio {wm / wo:.3f}")

@@ -713,7 +713,7 @@ class EarlyDetections:
         if found is None:
             return None
         masks = [np.asarray(d.mask, bool) for d in found]
-        return [replace(d, mask=ImagePatch.crop(m, mask_bounds(m))) for d, m in zip(found, masks)]
+        return [replace(d, mask=ImagePatch.crop(m, mask_bounds(m))) for d, m in zip(found, masks, strict=True)]
 
     def results(self) -> dict[int, list | None]:
         """Frame index -> detections (None: the detector did not answer), once all are in; the thread is let go."""
@@ -855,7 +855,7 @@ def fuse_keyframes(images: KeyframeImages, frame_index: list[int], poses: np.nda
     """TSDF fusion of the keyframes' depth (frame_index[k] is keyframe k's frame) with their optimised poses
     (k, 4, 4); the keyframes with a trunk detection go to `views` as fusion comes to them (cleaned as fusion moves
     on, with trunks.view_depth "cleaned")."""
-    pose_of = dict(zip(frame_index, poses))
+    pose_of = dict(zip(frame_index, poses, strict=True))
 
     def frames() -> Iterator[tuple[np.ndarray, np.ndarray, np.ndarray]]:
         for i, depth, color in images.frames(sorted(pose_of)):

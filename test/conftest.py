@@ -234,9 +234,9 @@ def write_constant_detector(path, values, *, outputs=("boxes", "labels", "scores
     if input_shape is None:
         input_shape = [3, 48, 64]
     nodes = [helper.make_node("Constant", [], [out], value=numpy_helper.from_array(np.asarray(values[src]), src))
-             for out, src in zip(outputs, names)]
+             for out, src in zip(outputs, names, strict=False)]  # strict=False: a shorter `outputs` leaves the last out
     outs = [helper.make_tensor_value_info(o, TensorProto.INT64 if s == "labels" else TensorProto.FLOAT,
-                                          list(np.shape(values[s]))) for o, s in zip(outputs, names)]
+                                          list(np.shape(values[s]))) for o, s in zip(outputs, names, strict=False)]
     graph = helper.make_graph(nodes, "const_detector", [helper.make_tensor_value_info(
         "image", TensorProto.FLOAT if input_type is None else input_type, input_shape)], outs)
     model = helper.make_model(graph, opset_imports=[helper.make_opsetid("", 17)])

@@ -292,7 +292,7 @@ def alpha_boundary(xy: np.ndarray, alpha: float, tile_points: int = 8000) -> np.
     cuts = np.quantile(x, np.linspace(0.0, 1.0, n_tiles + 1)) if len(x) else np.zeros(2)
     cuts[0], cuts[-1] = -np.inf, np.inf
     found = []
-    for lo, hi in zip(cuts[:-1], cuts[1:]):
+    for lo, hi in zip(cuts[:-1], cuts[1:], strict=True):
         a, b = np.searchsorted(x, [lo - 2.5 * alpha, hi + 2.5 * alpha])
         idx = order[a:b]
         if len(idx) < 3:

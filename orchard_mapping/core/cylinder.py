@@ -354,14 +354,14 @@ class _StackedViews:
         T = [np.linalg.inv(d.T_cam_odom) for d in data]  # T_odom_cam per view
         m = [len(d.X) for d in data]
         b = [len(d.rays) for d in data]
-        X = [d.X @ Ti[:3, :3].T + Ti[:3, 3] for d, Ti in zip(data, T)]
+        X = [d.X @ Ti[:3, :3].T + Ti[:3, 3] for d, Ti in zip(data, T, strict=True)]
         return _StackedViews(
             X=np.concatenate(X) if X else np.zeros((0, 3)),
             uv=np.concatenate([d.uv for d in data]) if data else np.zeros((0, 2)),
             R_cam_odom=np.repeat(np.array([d.T_cam_odom[:3, :3] for d in data]).reshape(-1, 3, 3), m, axis=0),
             t_cam_odom=np.repeat(np.array([d.T_cam_odom[:3, 3] for d in data]).reshape(-1, 3), m, axis=0),
             ray_origin=np.repeat(np.array([Ti[:3, 3] for Ti in T]).reshape(-1, 3), b, axis=0),
-            ray_dir=np.concatenate([d.rays @ Ti[:3, :3].T for d, Ti in zip(data, T)]) if data else np.zeros((0, 3)),
+            ray_dir=np.concatenate([d.rays @ Ti[:3, :3].T for d, Ti in zip(data, T, strict=True)]) if data else np.zeros((0, 3)),
             px_per_m=(intr.fx / np.maximum(np.concatenate([d.edge_depth for d in data]), 1e-3)) if data
             else np.zeros(0))
 
@@ -434,7 +434,7 @@ def _refine(parts: list[tuple[Cylinder, np.ndarray, list[_ViewData]]], intr: Cam
 
     def unpack(x: np.ndarray) -> list[Cylinder]:
         out = []
-        for i, ((c0, _, _), (e1, e2)) in enumerate(zip(parts, bases)):
+        for i, ((c0, _, _), (e1, e2)) in enumerate(zip(parts, bases, strict=True)):
             a = c0.axis + x[4 * i] * e1 + x[4 * i + 1] * e2
             a /= np.linalg.norm(a)
             out.append(Cylinder(a, c0.origin + x[4 * i + 2] * e1 + x[4 * i + 3] * e2, r0 + x[-1]))
@@ -442,7 +442,7 @@ def _refine(parts: list[tuple[Cylinder, np.ndarray, list[_ViewData]]], intr: Cam
 
     def residuals(x: np.ndarray) -> np.ndarray:
         res = []
-        for (_, P, _), views, cyl in zip(parts, stacked, unpack(x)):
+        for (_, P, _), views, cyl in zip(parts, stacked, unpack(x), strict=True):
             res.append(point_distance(P, cyl) / sigma_3d_m)
             if views is not None:
                 r_px, r_edge = views.residuals(cyl, intr)
@@ -451,7 +451,7 @@ def _refine(parts: list[tuple[Cylinder, np.ndarray, list[_ViewData]]], intr: Cam
 
     def jacobian(x: np.ndarray) -> np.ndarray:
         blocks = []
-        for i, ((c0, P, _), (e1, e2), views, cyl) in enumerate(zip(parts, bases, stacked, unpack(x))):
+        for i, ((c0, P, _), (e1, e2), views, cyl) in enumerate(zip(parts, bases, stacked, unpack(x), strict=True)):
             a_len = float(np.linalg.norm(c0.axis + x[4 * i] * e1 + x[4 * i + 1] * e2))
             rel, h, u, _ = _radial_terms(P, cyl.axis, cyl.origin)
             J_part = [np.column_stack([_tilt_shift_jacobian(rel, h, u, cyl.axis, a_len, e1, e2), -np.ones(len(P))])

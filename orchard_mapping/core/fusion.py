@@ -413,7 +413,7 @@ def remove_floating_pixels(depth: np.ndarray, intr: CameraIntrinsics, *, radius_
             if dy == 0 and dx == 0:
                 continue
             d2.fill(0.0)
-            for c, p in zip(planes, centre):
+            for c, p in zip(planes, centre, strict=True):
                 np.subtract(c[r + dy:r + dy + H, r + dx:r + dx + W], p, out=tmp)
                 np.multiply(tmp, tmp, out=tmp)
                 d2 += tmp

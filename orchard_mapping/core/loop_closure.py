@@ -640,7 +640,7 @@ class LoopDetector:
             ok = np.flatnonzero(np.isfinite(pts).all(axis=1))
             tree = cKDTree(pts[ok])
             near = [[] for _ in keyframes]
-            for i, js in zip(ok, tree.query_ball_point(pts[ok], self.max_view_distance_m)):
+            for i, js in zip(ok, tree.query_ball_point(pts[ok], self.max_view_distance_m), strict=True):
                 near[i] = sorted(int(ok[j]) for j in js if ok[j] < i)
         loops: list[LoopClosure] = []
         for i, kf in enumerate(keyframes):

@@ -375,7 +375,7 @@ class RGBFrontEnd(RGBDFrontEnd):
         """Re-triangulate the live landmarks from all their keyframe observations (linear, multi-view)."""
         if not len(self._ids):
             return
-        kf_all, lm_all, uv_all, _ = (np.concatenate(x) for x in zip(*self._obs))
+        kf_all, lm_all, uv_all, _ = (np.concatenate(x) for x in zip(*self._obs, strict=True))
         rows = np.flatnonzero(np.isin(lm_all, self._ids))
         ids, inv, cnt = np.unique(lm_all[rows], return_inverse=True, return_counts=True)
         kf_poses = np.array([k.T_odom_cam for k in self.keyframes])
@@ -452,7 +452,7 @@ class RGBFrontEnd(RGBDFrontEnd):
         first = max(0, rec - self.m.reloc_keyframes)
         if rec - first < 2:
             return
-        kf_all, lm_all, uv_all, _ = (np.concatenate(x) for x in zip(*self._obs))
+        kf_all, lm_all, uv_all, _ = (np.concatenate(x) for x in zip(*self._obs, strict=True))
         sel = kf_all >= first
         lm_ids, inv = np.unique(lm_all[sel], return_inverse=True)
         obs = Observations(kf_all[sel] - first, inv, uv_all[sel], np.zeros(int(sel.sum())))

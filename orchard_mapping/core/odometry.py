@@ -574,7 +574,7 @@ class RGBDFrontEnd:
 
     def result(self) -> FrontEndResult:
         if self._obs:
-            kf, lm, uv, z = (np.concatenate(x) for x in zip(*self._obs))
+            kf, lm, uv, z = (np.concatenate(x) for x in zip(*self._obs, strict=True))
         else:
             kf, lm, uv, z = np.zeros(0, np.int64), np.zeros(0, np.int64), np.zeros((0, 2)), np.zeros(0)
         return FrontEndResult(

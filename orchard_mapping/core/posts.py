@@ -178,7 +178,7 @@ def passes(post: PostLandmark, poses: np.ndarray) -> list[list[PostObservation]]
     PASS_GAP_M between two consecutive observations (a side's level and raised sweeps pass a post metres
     apart in time and 1-2 m apart in space; frames within a pass are ~0.15 m apart)."""
     out: list[list[PostObservation]] = [[post.observations[0]]]
-    for a, b in zip(post.observations, post.observations[1:]):
+    for a, b in zip(post.observations, post.observations[1:], strict=False):  # each with the next
         if np.linalg.norm(poses[b.keyframe][:3, 3] - poses[a.keyframe][:3, 3]) > PASS_GAP_M:
             out.append([])
         out[-1].append(b)
@@ -234,12 +234,12 @@ def post_shapes(sides: list[tuple[list[PostLandmark], np.ndarray]], pair_radius_
         ids.append(mine)
     refs: dict[int, list[np.ndarray]] = {}
     for k in range(len(sides)):
-        for (_, obs), i in zip(reps[k], ids[k]):
+        for (_, obs), i in zip(reps[k], ids[k], strict=True):
             refs.setdefault(i, []).extend(centres(k, obs))
     out: list[list[PostShape]] = []
     for k, (_, poses) in enumerate(sides):
         shapes = []
-        for (_, obs), i in zip(reps[k], ids[k]):
+        for (_, obs), i in zip(reps[k], ids[k], strict=True):
             p_ref = np.mean(refs[i], axis=0)
             for o in obs:
                 T_cam_map = np.linalg.inv(poses[o.keyframe])
@@ -275,7 +275,7 @@ def separate_trunks_from_posts(trunks: list[TrunkLandmark], posts: list[PostLand
     said: list[str] = []
     for t in trunks:
         r_trunk = t.diameter_m / 2 if t.diameter_m is not None else None
-        for p, a in zip(posts, axes):
+        for p, a in zip(posts, axes, strict=True):
             if p.id in drop_posts:
                 continue
             # m, the trunk's foot to the post's axis line, or the post's place to the trunk's axis line, the

@@ -309,7 +309,7 @@ def semantic_bundle_adjust(front: SideShapes, back: SideShapes, params: Semantic
         chains[sym] = (anchors, cov)
         for k in anchors:
             values.insert(sym(int(k)), gtsam.Pose3(side.poses[k]))
-        for a, b in zip(anchors[:-1], anchors[1:]):
+        for a, b in zip(anchors[:-1], anchors[1:], strict=True):
             rel = gtsam.Pose3(np.linalg.inv(side.poses[a]) @ side.poses[b])
             graph.add(gtsam.BetweenFactorPose3(sym(int(a)), sym(int(b)), rel,
                                                gtsam.noiseModel.Gaussian.Covariance(cov[b])))

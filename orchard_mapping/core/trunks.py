@@ -494,7 +494,7 @@ def _model_trunk(lm_id: int, obs: list[tuple[TrunkView, Detection]], places: np.
         except CylinderError:  # an axis along the ground: the plain foot stays
             pass
     observations = []
-    for (v, det), n_band in zip(obs, band_pixels):
+    for (v, det), n_band in zip(obs, band_pixels, strict=True):
         cyl_cam = band.cylinder.transformed(np.linalg.inv(v.T_odom_cam)) if band is not None else None
         observations.append(TrunkObservation(v.keyframe, v.stamp, det, cyl_cam, n_band))
     length = float(h_top - (base @ axis))

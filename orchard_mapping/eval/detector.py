@@ -67,7 +67,7 @@ def evaluate_detector(model: str | Path, data: list[Path], threads: int = 2, *,
         for im in load_coco(folder):
             img_id = len(images) + 1
             images.append({"id": img_id, "width": im.width, "height": im.height, "file_name": str(im.path)})
-            for c, m, crowd in zip(im.classes, im.masks, im.crowd):
+            for c, m, crowd in zip(im.classes, im.masks, im.crowd, strict=True):
                 if solid_outlines and not crowd:
                     m = solid_outline(m, or_whole=True)
                 rle = mask_rle(m)

@@ -309,7 +309,7 @@ def evaluate_result(
         maps = [result_dir / map_trajectory_filename(side) for side in ("front", "back")]
         if all(p.is_file() for p in maps) and not (_rgb_only(result_dir) if scale_alignment is None else scale_alignment):
             world_bases = np.array([t.trunk_base for t in gt.trees]).reshape(-1, 3)
-            in_map = {side: read_tum(p) for side, p in zip(("front", "back"), maps)}
+            in_map = {side: read_tum(p) for side, p in zip(("front", "back"), maps, strict=True)}
             try:
                 merge_map = map_merge_error(in_map["front"], in_map["back"], gt.sides["front"].trajectory,
                                             gt.sides["back"].trajectory, gt.sides["front"].T_world_odom,

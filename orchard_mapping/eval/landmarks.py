@@ -163,5 +163,5 @@ def ground_errors(side: str, grounds: list[ResultGround],
         height_error_mm_median=float(np.median(np.abs(a[:, 1]))), height_error_mm_max=float(np.abs(a[:, 1]).max()),
         normal_error_full_deg_median=float(np.median(f[:, 0])),
         height_error_full_mm_median=float(np.median(np.abs(f[:, 1]))),
-        per_tree=tuple((i, float(e[0]), float(e[1])) for i, e in zip(ids, a)),
+        per_tree=tuple((i, float(e[0]), float(e[1])) for i, e in zip(ids, a, strict=True)),
     )

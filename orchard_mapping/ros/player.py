@@ -131,7 +131,7 @@ class BagPlayer(Node):
     def play(self) -> None:
         """Replay every bag once (or until interrupted with --loop)."""
         while True:
-            for i, (bag, side) in enumerate(zip(self.bags, self.sides)):
+            for i, (bag, side) in enumerate(zip(self.bags, self.sides, strict=True)):
                 self._play_one(bag, side, self.start_s if i == 0 else 0.0)
             if not self.loop:
                 return

@@ -404,7 +404,7 @@ class RGBDOdometryNode(Node):
         path = PathMsg()
         stamp = float(sm.keyframe_stamps[-1])
         stamp_header(path.header, stamp, sm.frame_id)
-        for t, T in zip(sm.keyframe_stamps, sm.keyframe_poses):
+        for t, T in zip(sm.keyframe_stamps, sm.keyframe_poses, strict=True):
             ps = PoseStamped()
             stamp_header(ps.header, float(t), sm.frame_id)
             _pose(ps.pose, T)

@@ -525,7 +525,7 @@ class ScanRowResult:
 def _tum(path: CameraPath, T_world_odom: np.ndarray) -> list[list[float]]:
     T = np.linalg.inv(T_world_odom)[None] @ path.poses
     q = Rotation.from_matrix(T[:, :3, :3]).as_quat()
-    return [[round(float(s), 6), *map(float, p), *map(float, qq)] for s, p, qq in zip(path.stamps, T[:, :3, 3], q)]
+    return [[round(float(s), 6), *map(float, p), *map(float, qq)] for s, p, qq in zip(path.stamps, T[:, :3, 3], q, strict=True)]
 
 
 def _image_motion(Tp: np.ndarray, Tc: np.ndarray, K: CameraIntrinsics, depth: float = 1.5) -> tuple[float, float]:

@@ -425,7 +425,7 @@ def _build_tree(mb: MeshBuilder, rng: np.random.Generator, sc: Scenario, tid: in
     bh = np.sort(rng.uniform(z_clear + 0.02, 0.88 * height, nb))
     bphi = rng.uniform(0, 2 * np.pi, nb)
     branch_lines = []
-    for hb, ph in zip(bh, bphi):
+    for hb, ph in zip(bh, bphi, strict=True):
         start = leader_at(np.array([hb]))[0]
         length = float(envelope_r(np.array([hb]), np.array([ph]))[0]) * rng.uniform(0.75, 1.0)
         if length < 0.08:

@@ -106,7 +106,7 @@ def _tum(path: CameraPath, T_world_odom: np.ndarray) -> list[list[float]]:
     T_odom_world = np.linalg.inv(T_world_odom)
     T = T_odom_world[None] @ path.poses
     q = Rotation.from_matrix(T[:, :3, :3]).as_quat()  # x y z w
-    return [[round(float(s), 6), *map(float, p), *map(float, qq)] for s, p, qq in zip(path.stamps, T[:, :3, 3], q)]
+    return [[round(float(s), 6), *map(float, p), *map(float, qq)] for s, p, qq in zip(path.stamps, T[:, :3, 3], q, strict=True)]
 
 
 def _record(scene: Scene, renderer: Renderer, sensor: SensorModel, path: CameraPath, bag_dir: Path,

@@ -340,7 +340,7 @@ def _box_masks_postprocess(self, result, image_shapes, original_image_sizes):
     pasting every mask at full size inside the graph cost most of the inference time)."""
     from torchvision.models.detection.transform import resize_boxes
 
-    for i, (pred, im_s, o_im_s) in enumerate(zip(result, image_shapes, original_image_sizes)):
+    for i, (pred, im_s, o_im_s) in enumerate(zip(result, image_shapes, original_image_sizes, strict=True)):
         result[i]["boxes"] = resize_boxes(pred["boxes"], im_s, o_im_s)
     return result
 

@@ -79,7 +79,7 @@ def test_fixture_reads_like_a_recording_and_agrees_with_its_truth(name):
             assert len(mine) == len(true.trajectory.stamps), (name, side)
             np.testing.assert_allclose([f.stamp for f in mine], true.trajectory.stamps, atol=1e-6)
             T_world_cam = true.T_world_odom[None] @ _poses(true.trajectory)
-            for f, T in zip(mine, T_world_cam):
+            for f, T in zip(mine, T_world_cam, strict=True):
                 assert f.depth is not None and f.color.shape == (intr.height, intr.width, 3)
                 residuals += _trunk_depth_residuals(f.depth, T, gt, dh, intr)
     r = np.array(residuals)  # m: measured - expected depth at the trunk axis pixel, diameter height
@@ -131,7 +131,7 @@ def test_fixture_is_what_its_readme_command_produces(name, tmp_path):
     for label, bag in _bags_of(BAGS / name).items():
         old_frames, new_frames = list(read_rgbd(bag)), list(read_rgbd(fresh / label))
         assert len(old_frames) == len(new_frames), (name, label)
-        for a, b in zip(old_frames, new_frames):
+        for a, b in zip(old_frames, new_frames, strict=True):
             assert a.stamp == pytest.approx(b.stamp, abs=1e-9) and a.side == b.side
             # Another processor may ray-cast an edge pixel differently: compare with a tolerance.
             dc = np.abs(a.color.astype(int) - b.color.astype(int))
@@ -147,7 +147,7 @@ def _assert_same_json(a, b, where: str) -> None:
             _assert_same_json(a[k], b[k], f"{where}.{k}")
     elif isinstance(a, list):
         assert isinstance(b, list) and len(a) == len(b), where
-        for i, (x, y) in enumerate(zip(a, b)):
+        for i, (x, y) in enumerate(zip(a, b, strict=True)):
             _assert_same_json(x, y, f"{where}[{i}]")
     elif isinstance(a, float) or isinstance(b, float):
         assert b == pytest.approx(a, rel=1e-6, abs=1e-6), where

@@ -159,7 +159,7 @@ def test_loop_closures_accepted_are_true(wind_front, accuracy):
     """
     sim, sm = wind_front
     true = _true_trajectory(sim, sm.side)
-    T_true = {round(float(t), 6): T for t, T in zip(true.stamps, _poses(true))}
+    T_true = {round(float(t), 6): T for t, T in zip(true.stamps, _poses(true), strict=True)}
     for loop in sm.loops:
         Ta = T_true[round(float(sm.keyframe_stamps[loop.kf_a]), 6)]
         Tb = T_true[round(float(sm.keyframe_stamps[loop.kf_b]), 6)]
@@ -277,7 +277,7 @@ def test_a_side_fed_frame_by_frame_with_spooled_keyframes_is_the_side_run_wrote(
     assert len(side.cloud_points) == len(o3d.io.read_point_cloud(str(out / "front.ply")).points)
     written = [t for t in read_trunks(out / "trunks.json") if t.side == "front"]
     assert len(side.trunks) == len(written) > 0
-    for lm, t in zip(side.trunks, written):
+    for lm, t in zip(side.trunks, written, strict=True):
         assert lm.id == t.id and np.abs(lm.base - t.base).max() < 1e-6
     # the side map as the odometry node sends it to the side merger: back exactly (re-encoded: the same bytes)
     data = encode_side_map(side)

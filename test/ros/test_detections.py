@@ -25,7 +25,7 @@ def test_detections_round_trip_through_the_message():
     back = detections_from_msg(deserialize_message(serialize_message(msg), TrunkDetectionArray))
     assert msg.header.stamp.sec == 12 and msg.header.stamp.nanosec == 345678901
     assert len(back) == 3
-    for a, b in zip(dets, back):
+    for a, b in zip(dets, back, strict=True):
         assert a.class_id == b.class_id and abs(a.score - b.score) < 1e-6
         assert np.allclose(a.box, b.box) and np.array_equal(a.mask, b.mask)
     assert len(msg.detections[0].mask) < trunk.size / 4  # cropped, not the whole image

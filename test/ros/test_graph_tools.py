@@ -67,7 +67,7 @@ def test_player_and_recorder_carry_every_message_unchanged(small_bag, tmp_path):
         # the bytes that crossed DDS decode to the same images (rclpy may pad: compare decoded, not raw)
     a, b = list(read_rgbd(small_bag)), list(read_rgbd(out))
     assert len(a) == len(b) == N_FRAMES
-    for fa, fb in zip(a, b):
+    for fa, fb in zip(a, b, strict=True):
         assert fa.stamp == fb.stamp
         assert np.array_equal(fa.color, fb.color) and np.array_equal(fa.depth, fb.depth)
     sides = [m.data for _, m in iter_messages(out, "/orchard/side")]

@@ -144,7 +144,7 @@ def _assert_matches_spec(msg, spec):
     assert msg.header.frame_id == spec["frame_id"]
     assert [msg.header.stamp.sec, msg.header.stamp.nanosec] == spec["stamp"]
     assert len(msg.cylinders) == len(spec["cylinders"])
-    for cyl, want in zip(msg.cylinders, spec["cylinders"]):
+    for cyl, want in zip(msg.cylinders, spec["cylinders"], strict=True):
         assert cyl.header.frame_id == spec["frame_id"]
         assert [cyl.header.stamp.sec, cyl.header.stamp.nanosec] == spec["stamp"]
         assert cyl.tree_id == want["tree_id"]

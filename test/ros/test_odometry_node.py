@@ -57,7 +57,7 @@ def test_launched_graph_on_bags_gives_the_offline_trunks(standard_row, tmp_path)
         assert frame == f"odom_{side}"
         want = [t for t in written if t.side == side]
         assert [i for i, _, _ in live] == [t.id for t in want] and want, (side, live, want)
-        for (_, base, radius), t in zip(live, want):
+        for (_, base, radius), t in zip(live, want, strict=True):
             assert np.abs(base - t.base).max() < 1e-3, (side, base, t.base)  # within 1 mm
             if t.diameter_m is not None:
                 assert abs(2 * radius - t.diameter_m) < 1e-3, (side, radius, t.diameter_m)
@@ -111,7 +111,7 @@ def _same_trees(rec, out, offline) -> None:
     assert len(msgs) == 1 and msgs[0].header.frame_id == "map", len(msgs)
     live = msgs[0].trees
     assert len(live) == len(offline_trees) >= 2, (len(live), len(offline_trees))
-    for m, t in zip(live, offline_trees):
+    for m, t in zip(live, offline_trees, strict=True):
         assert m.tree_id == t.id and list(m.flags) == list(t.flags), (m, t)
         pos = np.array([m.position.x, m.position.y, m.position.z])
         assert np.linalg.norm(pos - np.array(t.position)) < 0.01, (pos, t.position)  # 1 cm
@@ -125,7 +125,7 @@ def _same_trees(rec, out, offline) -> None:
             assert getattr(m, f"trunk_id_{side}") == (own["trunk_id"] if own else -1)
     written = read_trees(out / "trees.json")
     assert [(w.id, w.flags) for w in written] == [(t.id, t.flags) for t in offline_trees]
-    assert max(np.linalg.norm(np.subtract(w.position, t.position)) for w, t in zip(written, offline_trees)) < 0.01
+    assert max(np.linalg.norm(np.subtract(w.position, t.position)) for w, t in zip(written, offline_trees, strict=True)) < 0.01
 
 
 def test_one_drive_round_the_row_in_one_bag_gives_the_offline_trees(loop_row, tmp_path):

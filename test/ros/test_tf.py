@@ -40,7 +40,7 @@ def test_transforms_round_trip_through_a_serialised_tfmessage():
         Ts.append(T)
     msg = TFMessage(transforms=[transform_msg(T, "odom_front", f"child{i}", 12.5 + i) for i, T in enumerate(Ts)])
     back = deserialize_message(serialize_message(msg), TFMessage)
-    for i, (T, t) in enumerate(zip(Ts, back.transforms)):
+    for i, (T, t) in enumerate(zip(Ts, back.transforms, strict=True)):
         assert t.header.frame_id == "odom_front" and t.child_frame_id == f"child{i}"
         assert t.header.stamp.sec == 12 + i and t.header.stamp.nanosec == 500_000_000
         assert np.abs(transform_of(t) - T).max() < 1e-9

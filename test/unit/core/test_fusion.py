@@ -57,7 +57,7 @@ class Row:
     result: FusionResult
 
     def frames(self) -> list[tuple[np.ndarray, np.ndarray, np.ndarray]]:
-        return [(d, c, T) for (d, c), T in zip(self.noisy, self.poses)]
+        return [(d, c, T) for (d, c), T in zip(self.noisy, self.poses, strict=True)]
 
     def surface_distance(self, points_odom: np.ndarray) -> np.ndarray:
         """(P,) m from each odom point (P, 3) to the nearest true surface."""
@@ -96,7 +96,7 @@ def row(seed_offset) -> Row:
     surfaces = o3d.t.geometry.RaycastingScene()
     surfaces.add_triangles(scene.vertices.astype(np.float32), scene.triangles.astype(np.uint32))
     keyframes = list(range(2, len(poses), 4))
-    result = fuse_side([(d, col, T) for (d, col), T in zip(noisy, poses)], intr, keyframes=keyframes)
+    result = fuse_side([(d, col, T) for (d, col), T in zip(noisy, poses, strict=True)], intr, keyframes=keyframes)
     print(f"\nfuse_side: {len(poses)} frames {intr.width}x{intr.height}, TSDF integration "
           f"{1000 * result.seconds_per_frame:.1f} ms/frame, whole call {result.seconds_total:.2f} s "
           f"({len(keyframes)} keyframes cleaned)")
@@ -136,7 +136,7 @@ def test_fused_cloud_lies_on_true_surfaces(row, accuracy):
 
 def test_fused_cloud_has_far_fewer_floating_points_than_raw_depth(row, accuracy):
     raw = np.concatenate([_backproject(np.where(d <= DEPTH_MAX_M, d, 0), row.intr, T)
-                          for (d, _), T in zip(row.noisy, row.poses)])
+                          for (d, _), T in zip(row.noisy, row.poses, strict=True)])
     raw_floating = int((row.surface_distance(raw) > FLOATING_M).sum())
     fused_floating = int((row.surface_distance(row.result.points) > FLOATING_M).sum())
     print(f"points > {100 * FLOATING_M:.0f} cm from any surface: raw {raw_floating} of {len(raw)}, "

@@ -78,7 +78,7 @@ def test_trunks_are_found_and_the_post_is_told_apart(seed):
     assert all(c.tree_like for c in trunks) and not posts[0].tree_like
     assert len(posts) == 1 and np.linalg.norm(posts[0].base[:2] - post[:2]) < 0.02
     assert len(trunks) == len(trees)  # no weed, leaf cluster or canopy taken for a trunk
-    for c, (centre, r) in zip(trunks, trees):
+    for c, (centre, r) in zip(trunks, trees, strict=True):
         assert np.linalg.norm(c.base[:2] - centre[:2]) < 0.015  # m, the axis at the ground
         assert abs(c.base[2] - centre[2]) < 0.03  # m, the ground under it
         assert abs(c.radius_m - (r - 0.01 * 0.31)) < 0.004  # m, the band's mean radius (tapering trunk)

@@ -90,7 +90,7 @@ def make_row(seed: int) -> Row:
     path = rig.path("front", np.random.default_rng(seed))
     rng = np.random.default_rng([seed, 2])
     frames = []
-    for i, (stamp, T) in enumerate(zip(path.stamps, path.poses)):
+    for i, (stamp, T) in enumerate(zip(path.stamps, path.poses, strict=True)):
         color, _, _ = rig.shoot(T, rng)
         frames.append(RGBDFrame(float(stamp), color, None, intr, side="front", index=i))
     T_world_odom = path.poses[0]

@@ -31,7 +31,7 @@ def holey_row() -> tuple[list[RGBDFrame], np.ndarray]:
     path = rig.path("front", np.random.default_rng([SEED, 1]))
     rng = np.random.default_rng([SEED, 2])
     frames = []
-    for i, (stamp, T) in enumerate(zip(path.stamps[:N_FRAMES], path.poses[:N_FRAMES])):
+    for i, (stamp, T) in enumerate(zip(path.stamps[:N_FRAMES], path.poses[:N_FRAMES], strict=True)):
         color, depth, _ = rig.shoot(T, rng, float(stamp))
         frames.append(RGBDFrame(float(stamp), color, depth, rig.intrinsics, side="front", index=i))
     return frames, np.asarray(path.poses[:N_FRAMES])

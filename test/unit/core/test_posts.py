@@ -186,9 +186,9 @@ def test_post_views_kept_as_their_masks_box_give_the_posts_of_the_whole_frames()
     ups = [T[:3, :3].T @ np.array([0.0, 0.0, 1.0]) for T in poses]
     fit_rng = np.random.default_rng(cfg.seed)
     whole = build_post_landmarks([fit_post_view(d, m, INTR, up, k, fit_rng)
-                                  for k, ((d, m), up) in enumerate(zip(frames, ups))], poses)
+                                  for k, ((d, m), up) in enumerate(zip(frames, ups, strict=True))], poses)
     views = [PostView(k, up, ImagePatch.crop(d, mask_bounds(m)), ImagePatch.crop(m, mask_bounds(m)))
-             for k, ((d, m), up) in enumerate(zip(frames, ups))]
+             for k, ((d, m), up) in enumerate(zip(frames, ups, strict=True))]
     assert sum(v.depth.nbytes for v in views) < 0.2 * sum(d.nbytes for d, _ in frames)
     job = TrunkJob("front", np.zeros((0, 3), np.float32), poses, np.arange(5.0), [], views, [], INTR, cfg)
     kept = model_trunks(job).posts

@@ -174,7 +174,7 @@ def test_chain_covariance_composes_the_steps_as_gtsam_does(seed):
     q_rot, q_trans = np.radians(0.02) ** 2, 0.001 ** 2
     cov = _chain_covariances(poses, anchors, q_rot, q_trans)
     Q = np.diag([q_rot] * 3 + [q_trans] * 3)
-    for a, b in zip(anchors[:-1], anchors[1:]):
+    for a, b in zip(anchors[:-1], anchors[1:], strict=True):
         S = np.zeros((6, 6))
         for k in range(a, b):
             A = gtsam.Pose3(np.linalg.inv(poses[k]) @ poses[k + 1]).inverse().AdjointMap()
@@ -226,7 +226,7 @@ def _not_round(shapes: list[TrunkShape], offsets: np.ndarray) -> list[TrunkShape
     half of an elliptical trunk a side sees puts the centre (towards that side's cameras when the long axis
     points at them, away when it runs along the row)."""
     out = []
-    for t, d in zip(shapes, offsets):
+    for t, d in zip(shapes, offsets, strict=True):
         T = t.T_cam_trunk.copy()
         to_cam = -T[:3, 3] / np.linalg.norm(T[:3, 3])  # camera frame: from the trunk towards the camera
         T[:3, 3] += d * to_cam

@@ -40,7 +40,7 @@ def _traj(T: np.ndarray) -> StampedTrajectory:
 def _seen_misplacement_mm(A: np.ndarray, est: np.ndarray, true: np.ndarray) -> float:
     """RMS (mm) of where A (4, 4) map -> world puts the scene points each keyframe sees, against the truth."""
     errs = []
-    for Te, Tt in zip(est, true):
+    for Te, Tt in zip(est, true, strict=True):
         local = (SCENE - Tt[:3, 3]) @ Tt[:3, :3]
         seen = (local[:, 2] > 0.1) & (np.linalg.norm(local, axis=1) < 4.0)
         placed = local[seen] @ Te[:3, :3].T + Te[:3, 3]

@@ -29,7 +29,7 @@ def test_a_solid_strip_of_bark_is_recognisable_and_scattered_pixels_are_not():
     # the same trunk seen through gaps between leaves: as many pixels, in specks of 2 x 2
     rng = np.random.default_rng(0)
     specks = np.zeros((H, W), bool)
-    for v, u in zip(rng.integers(0, H - 2, 400), rng.integers(0, W - 2, 400)):
+    for v, u in zip(rng.integers(0, H - 2, 400), rng.integers(0, W - 2, 400), strict=True):
         specks[v:v + 2, u:u + 2] = True
     assert specks.sum() > strip.sum() and not recognisable(specks)
     # a strip narrower than SOLID_PX (a trunk behind a fence of leaf edges) has no solid part

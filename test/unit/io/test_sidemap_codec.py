@@ -65,7 +65,7 @@ def _same(a, b, at: str = "side_map") -> None:
             _same(getattr(a, name), getattr(b, name), f"{at}.{name}")
     elif isinstance(a, (list, tuple)):
         assert type(a) is type(b) and len(a) == len(b), at
-        for i, (x, y) in enumerate(zip(a, b)):
+        for i, (x, y) in enumerate(zip(a, b, strict=True)):
             _same(x, y, f"{at}[{i}]")
     elif isinstance(a, float) and np.isnan(a):
         assert isinstance(b, float) and np.isnan(b), at

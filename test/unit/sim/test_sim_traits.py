@@ -88,7 +88,7 @@ def test_an_elliptical_trunk_keeps_its_stated_diameter_as_the_mean_of_its_axes()
 
     oval = build_scene(load_scenario("standard", {**over, "trunk.ellipticity": [0.08, 0.08],
                                                   "trunk.bark_roughness_m": 0.002}), 5)
-    for a, b in zip(plain.trees, oval.trees):
+    for a, b in zip(plain.trees, oval.trees, strict=True):
         assert a.axis_diam.tolist() == b.axis_diam.tolist() and a.top_z_point.tolist() == b.top_z_point.tolist()
         assert a.canopy_points.shape == b.canopy_points.shape and np.array_equal(a.canopy_points, b.canopy_points)
     for radial, d in rings(build_scene(load_scenario("standard", {**over, "trunk.ellipticity": [0.08, 0.08]}), 5)):
