@@ -16,7 +16,6 @@ from __future__ import annotations
 
 import json
 import logging
-import shutil
 from collections.abc import Callable
 from dataclasses import dataclass
 from pathlib import Path
@@ -31,6 +30,7 @@ from orchard_mapping.errors import OrchardMappingError, ScenarioError
 from orchard_mapping.io.bags import BagWriter
 from orchard_mapping.io.results import atomic_write_text
 from orchard_mapping.sim.scenario import load_scenario
+from orchard_mapping.sim.simulate import fresh_output_folder
 from orchard_mapping.sim.splat import PCls, PointScene, SplatFrame, SplatRenderer, StereoSensor
 from orchard_mapping.sim.trajectory import CameraPath, side_path
 
@@ -592,12 +592,7 @@ def generate_scan_row(out_dir: str | Path, *, seed: int = 0, spec: ScanRowSpec =
     Raises ScanDataError when the scan files are missing."""
     import time
 
-    out = Path(out_dir)
-    if out.exists() and any(out.iterdir()):
-        if not force:
-            raise ScenarioError(f"output folder {out} exists and is not empty (use force=True to replace it)")
-        shutil.rmtree(out)
-    out.mkdir(parents=True, exist_ok=True)
+    out = fresh_output_folder(out_dir, force, "force=True")
     trees = load_scan_trees(data_dir)
     row = build_scan_row(seed, spec, trees)
     K = CameraIntrinsics(spec.width, spec.height, spec.fx, spec.fy, spec.cx, spec.cy)

@@ -179,6 +179,18 @@ def _tree_truth(scene: Scene, acc: dict[str, VisibilityAccumulator], alpha: floa
     return trees
 
 
+def fresh_output_folder(out_dir: str | Path, force: bool, how: str) -> Path:
+    """The output folder of a simulation, created empty: a non-empty one is replaced only with force (`how` names
+    the option that forces it), else ScenarioError."""
+    out = Path(out_dir)
+    if out.exists() and any(out.iterdir()):
+        if not force:
+            raise ScenarioError(f"output folder {out} exists and is not empty (use {how} to replace it)")
+        shutil.rmtree(out)
+    out.mkdir(parents=True, exist_ok=True)
+    return out
+
+
 def simulate(sc: Scenario, seed: int, out_dir: str | Path, *, force: bool = False,
              topics: TopicsConfig = TopicsConfig(), progress: Progress | None = None,
              record: tuple[str, ...] = ("front", "back"), compress: bool = False) -> SimulationResult:
@@ -188,12 +200,7 @@ def simulate(sc: Scenario, seed: int, out_dir: str | Path, *, force: bool = Fals
     ground truth keeps both sides' paths, and marks the side not recorded (`"recorded": false`; its
     visibility fields then say nothing). `compress`: zstd chunk compression of the MCAP bags.
     """
-    out = Path(out_dir)
-    if out.exists() and any(out.iterdir()):
-        if not force:
-            raise ScenarioError(f"output folder {out} exists and is not empty (use --force to replace it)")
-        shutil.rmtree(out)
-    out.mkdir(parents=True, exist_ok=True)
+    out = fresh_output_folder(out_dir, force, "--force")
 
     rig = Rig.build(sc, seed)
     scene, intr, renderer, sensor = rig.scene, rig.intrinsics, rig.renderer, rig.sensor
