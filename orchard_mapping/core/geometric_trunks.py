@@ -71,7 +71,7 @@ TREE_RMS_FACTOR = 2.0
 POST_MAX_RMS_M = 0.010
 POST_MAX_RMS_FRACTION = 0.2
 MASK_TOP_M = 0.9  # m above the ground: a column's mask ends here (the clear trunk and a little of the leader)
-MASK_GROW_PX = 1  # px each way: the depth pixels on a column stop 1-2 px short of its silhouette (no depth at the edge);
+MASK_GROW_PX = 1  # px each way: the depth pixels on a column end 1-2 px short of its silhouette (no depth at the edge);
 # std6 row, geometry alone: diameter bias -1.78 mm as they are, +0.60 grown by 1 px, +2.5 by 2 (the edge snap does the rest)
 
 
