@@ -65,7 +65,7 @@ def _prune_ended_sessions(tmp_path_factory) -> None:
     """Remove the temporary folders of earlier test sessions that have ended before this one writes its own.
     pytest keeps the folders of the last sessions and prunes older ones only at exit; a full run writes
     ~4 GB of simulated rows, and on a machine that runs the suite again and again (CI) the kept folders
-    filled its disk during the next run ("No space left on device" in stop 37's CI). A folder whose
+    filled its disk during the next run (a CI run once failed with "No space left on device"). A folder whose
     session is still running (its `.lock` names a live process) is left alone."""
     base = tmp_path_factory.getbasetemp()
     if base.parent.name != f"pytest-of-{_user()}":

@@ -428,7 +428,7 @@ class RGBDOdometryNode(Node):
             t.join(timeout=600)
         # The last status (a side finished) is published just before the node stops: wait until the
         # subscribers (the recorder) acknowledged it, or a recording of a replay may end one status short
-        # (CI, stop 26: `finished` without the last side).
+        # (a CI run once recorded `finished` without the last side).
         try:
             self._status.wait_for_all_acked(Duration(seconds=STATUS_ACK_TIMEOUT_S))
         except Exception as err:  # noqa: BLE001 - a context already shut down: nothing left to wait for

@@ -47,8 +47,9 @@ class TrainSettings:
     fpn_channels: int = 96
     # px: strides of the backbone stages that feed the FPN (plus a max-pool level at twice the last). A trunk
     # is 10-20 px wide at 416 px: torchvision's MobileNet FPN, which read two stages both at stride 32 (the
-    # layout of the models before stop 41), saw it as half a feature cell. 8/16/32 cost 0.69 s per training
-    # iteration against 0.64 and 40 ms per ONNX frame against 31 (stop 41, 2 CPU cores, random weights).
+    # layout of the models up to step 5 of models/README.md), saw it as half a feature cell. 8/16/32 cost
+    # 0.69 s per training iteration against 0.64 and 40 ms per ONNX frame against 31 (2 CPU cores, random
+    # weights).
     fpn_strides: tuple[int, ...] = (8, 16, 32)
     representation: int = 256
     seed: int = 0
@@ -57,7 +58,7 @@ class TrainSettings:
     # A frame holds a few trunks and posts; fewer RoIs make an iteration cheaper on a CPU.
     rpn_post_nms_train: int = 600
     # Inference (baked into the ONNX export): RPN proposals kept per FPN level before its NMS, and in all
-    # after it. Step 8's weights exported with 600 per level against 300 (stop 43): held-out AP +0.001 to
+    # after it. Step 8's weights exported with 600 per level against 300: held-out AP +0.001 to
     # +0.003 on all four scorings of models/README.md, AP50 within 0.001, the same ms per frame; step 7's
     # moved AP50 by +0.005 (heldout) and -0.004 (heldout2). More kept after the NMS gained nothing.
     rpn_pre_nms_test: int = 600
@@ -69,7 +70,8 @@ class TrainSettings:
     solid_outlines: bool = True
     # Share of training images cropped to a random window of crop_min_scale..1 of each side (then resized by
     # the network like any frame): trunks cut by the image edge and near, large ones, which the held-out
-    # misses of stop 39 were made of (strips at the edge; feet under low canopies seen from close by).
+    # misses of the solid-outline models were made of (strips at the edge; feet under low canopies seen
+    # from close by).
     crop_prob: float = 0.0
     crop_min_scale: float = 0.6
 

@@ -47,7 +47,7 @@ def test_a_checkpoint_of_the_same_layout_is_taken_whole():
 
 
 def test_levels_are_matched_by_the_stage_they_read_and_new_ones_stay_fresh():
-    # the models before stop 41 read blocks 13 (160 channels) and 16 (960); the new layout reads 6 (40),
+    # the models up to step 5 read blocks 13 (160 channels) and 16 (960); the new layout reads 6 (40),
     # 12 (112) and 16 (960): its stride-32 level must take the old level 1, the others start fresh
     state = _fpn([160, 960], 1.0)
     own = _fpn([40, 112, 960], 0.0)
