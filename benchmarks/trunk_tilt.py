@@ -1,9 +1,9 @@
 """Benchmark: how each side's trunk axes lean against the truth, towards or away from that side's camera.
 
 The two-side merge makes both sides' halves of a trunk one axis; a lean of each side's axes towards its
-own camera then tilts the sides against each other about the row (docs/merge.md, "The merged map's
-error"). For each side of a reconstructed row (benchmarks/merge.py's sides.pkl) the side's map is placed
-on its true trajectory by one rigid fit (eval.metrics.fit_map_to_world), and each trunk's axis is
+own camera then tilts the sides against each other about the row (docs/history.md, "Why the merged map
+leaned about the row"). For each side of a reconstructed row (benchmarks/merge.py's sides.pkl) the side's map
+is placed on its true trajectory by one rigid fit (eval.metrics.fit_map_to_world), and each trunk's axis is
 compared with the true one in the vertical plane through the camera's viewing direction: the plain
 cylinder axis (TrunkLandmark.axis), the cone axis the merge uses (merge_axis), and a model-free axis
 through circles fitted to 8 cm slices of the fused trunk points; and each local ground's normal.

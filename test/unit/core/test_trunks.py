@@ -112,7 +112,7 @@ def test_no_detection_gives_no_trunk():
 
 def test_the_merge_axis_comes_from_the_depth_pixels_not_a_leaning_fused_trunk():
     """A TSDF surface of a thin trunk leans towards the camera as the trunk narrows (0.16 deg at the
-    default 4 cm truncation on the simulated rows, 2 deg at 8 cm; docs/merge.md). Here the fused trunk
+    default 4 cm truncation on the simulated rows, 2 deg at 8 cm; docs/history.md). Here the fused trunk
     leans 0.6 deg towards the camera while the keyframes' depth does not: the merge axis must not lean."""
     points, poses, views = _side()
     h = GROUND_Y - points[:, 1]  # m above the ground
@@ -134,7 +134,7 @@ def test_the_foot_lies_on_the_merge_axis_not_on_a_leaning_fused_trunk():
     """The merge's trunk line is the foot plus the merge axis. A fused trunk that leans about its middle
     (a plain cylinder on a tapered trunk does, away from the camera) puts its own axis off the true one at
     the ground: the foot must come from the depth pixels' axis, or the two sides' lines part at the ground
-    (docs/merge.md: 8 mm in depth on the 10-tree standard row)."""
+    (docs/history.md, "The trunk's foot": 8 mm in depth on the 10-tree standard row)."""
     points, poses, views = _side()
     h = GROUND_Y - points[:, 1]
     on_trunk = (np.hypot(points[:, 0] - TRUNK[0], points[:, 2] - TRUNK[2]) < RADIUS + 0.01) & (h > 0)
