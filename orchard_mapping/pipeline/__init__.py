@@ -4,46 +4,37 @@ Reads as the paper's steps, per side: front end (RGB-D odometry with
 keyframes), loop detection, pose graph, bundle adjustment, TSDF fusion, trunk
 detection with trunk cylinders and local grounds; then writes each side's
 trajectory, cloud, trunks and grounds.
+
+One module per stage, each importing only those above it in this list:
+sides (the bags opened, a side's frames and keyframe images, the run's timings) -> trunks (trunk and post
+modelling, the trunk detector, the worker process) -> views (the trunk views kept beside the front end and in
+fusion) -> side (one side: front end, back end, fusion, its trunks) -> merge (the two sides merged, the trees)
+-> outputs (the result folder's files) -> runner (`run`).
 """
 
-from orchard_mapping.pipeline.side import (
+from orchard_mapping.pipeline.merge import MergeOutcome, map_poses, merge_sides, merge_to_trees, two_side_trees
+from orchard_mapping.pipeline.outputs import write_merge
+from orchard_mapping.pipeline.runner import RunResult, run
+from orchard_mapping.pipeline.side import SideHandover, SideSession, finish_side, front_end, reconstruct_side
+from orchard_mapping.pipeline.sides import (
     SIDES,
     BagKeyframeImages,
-    EarlyDetections,
     KeyframeImages,
-    MergeOutcome,
-    PostView,
-    RunResult,
-    SideHandover,
-    SideSession,
     SpooledKeyframeImages,
     Timings,
-    TrunkJob,
-    TrunkViews,
-    TrunkWorker,
-    finish_side,
-    fit_posts,
-    front_end,
-    map_poses,
-    merge_sides,
-    merge_to_trees,
-    model_trunks,
     open_sides,
-    reconstruct_side,
-    run,
-    trunk_detector,
-    two_side_trees,
-    write_merge,
 )
+from orchard_mapping.pipeline.trunks import PostView, TrunkJob, TrunkWorker, fit_posts, model_trunks, trunk_detector
+from orchard_mapping.pipeline.views import EarlyDetections, TrunkViews
 
 __all__ = [
-    "SIDES",
     "BagKeyframeImages",
     "EarlyDetections",
     "KeyframeImages",
     "MergeOutcome",
     "PostView",
     "RunResult",
+    "SIDES",
     "SideHandover",
     "SideSession",
     "SpooledKeyframeImages",

@@ -1,0 +1,301 @@
+"""The two sides merged: initial alignment, initial transform and semantic bundle adjustment (`merge_sides`),
+the clouds carried into map, and the trees (`two_side_trees`, `merge_to_trees`)."""
+
+from __future__ import annotations
+
+import logging
+import time
+from dataclasses import dataclass, replace
+
+import numpy as np
+
+from orchard_mapping.config import OrchardConfig
+from orchard_mapping.core.alignment import AlignmentSide, SideAlignment, align_sides, icp_merge, pair_trunks
+from orchard_mapping.core.cylinder import Cylinder
+from orchard_mapping.core.geometry import SlabIndex, move_with_keyframes
+from orchard_mapping.core.merge import HeightPrior, InitialTransform, SemanticPair, initial_transform
+from orchard_mapping.core.posts import post_shapes
+from orchard_mapping.core.semantic_ba import (
+    HeightAnchor,
+    SemanticBAResult,
+    SideShapes,
+    TrunkShape,
+    semantic_bundle_adjust,
+    trunk_frame,
+)
+from orchard_mapping.core.sidemap import SideMap
+from orchard_mapping.core.trunks import (
+    TrunkLandmark,
+    ground_around_trunk,
+)
+from orchard_mapping.errors import AlignmentError
+from orchard_mapping.io.results import (
+    ResultTree,
+)
+from orchard_mapping.pipeline.trunks import DETECTOR_UNAVAILABLE, BandPair, TrunkWorker, two_side_diameter
+
+log = logging.getLogger(__name__)
+
+
+@dataclass(frozen=True)
+class MergeOutcome:
+    method: str  # merge.method that made it
+    T_front_back: np.ndarray  # (4, 4) rigid odom_front <- odom_back
+    pairs: tuple[tuple[int, int], ...]  # (front trunk id, back trunk id)
+    alignment: SideAlignment | None  # None for the ICP baseline
+    initial: InitialTransform | None
+    sba: SemanticBAResult | None  # only with merge.method "semantic_ba"
+    shapes: tuple[SideShapes, SideShapes] | None  # what the semantic BA measured of each side
+    seconds: dict[str, float]  # per step: alignment, initial_transform, semantic_ba (or icp)
+
+
+# MergeOutcome.method of a merge made without enough trunk pairs (alignment.fallback): the front views and each
+# side's trunk line alone; every tree of it carries the flag MERGED_BY_GLOBAL_FEATURES
+GLOBAL_FEATURES = "global_features"
+
+
+MERGED_BY_GLOBAL_FEATURES = "merged_by_global_features"
+
+
+def _ground_kind(lm: TrunkLandmark) -> int:
+    """What a trunk's foot stands on: 2 its local ground, 1 the wider ground (no local one), 0 neither
+    (its lowest visible point)."""
+    return 2 if lm.ground is not None else 1 if "diameter_height_from_wide_ground" in lm.flags else 0
+
+
+def _merge_axis(lm: TrunkLandmark) -> np.ndarray:
+    """The trunk axis the merge uses: with the taper modelled when it was fitted (TrunkLandmark.merge_axis)."""
+    return lm.merge_axis if lm.merge_axis is not None else lm.axis
+
+
+def _row_direction(bases: np.ndarray) -> np.ndarray:
+    """(3,) unit: the row's direction through trunk bases (T, 3) (their first principal axis), T >= 2."""
+    return np.linalg.svd(bases - bases.mean(axis=0), full_matrices=False)[2][0]
+
+
+def _trunk_shapes(sm: SideMap, ids: list[int], T_map_odom: np.ndarray, height_m: float, row_map: np.ndarray
+                  ) -> list[TrunkShape]:
+    """Each paired trunk of a side as the semantic BA measures it: its frame (origin on the whole-trunk
+    axis at the diameter height, z along it, x along the row: row_map (3,) in map) and local ground, in the camera of the
+    observation that saw most of it. (The band cylinder's own axis, fitted on 16 cm of trunk, tilts
+    5-18 deg off the whole trunk's on the 10-tree rows: only its radius is used.)"""
+    by_id = {t.id: t for t in sm.trunks}
+    out = []
+    for tree, lid in enumerate(ids):
+        lm = by_id[lid]
+        k = max(lm.observations, key=lambda o: o.band_pixels + int(o.detection.mask.sum())).keyframe
+        axis_map = T_map_odom[:3, :3] @ _merge_axis(lm)
+        origin_map = T_map_odom[:3, :3] @ (lm.base + height_m * _merge_axis(lm)) + T_map_odom[:3, 3]
+        T_map_cam = T_map_odom @ sm.keyframe_poses[k]
+        ground = None
+        if lm.ground is not None:
+            R, t = sm.keyframe_poses[k][:3, :3], sm.keyframe_poses[k][:3, 3]
+            n = np.asarray(lm.ground.normal, float)
+            ground = np.array([*(R.T @ n), n @ t + lm.ground.offset])
+        out.append(TrunkShape(tree, k, np.linalg.inv(T_map_cam) @ trunk_frame(origin_map, axis_map, row_map), ground,
+                              grounded=_ground_kind(lm) > 0))
+    return out
+
+
+def merge_sides(front: SideMap, back: SideMap, cfg: OrchardConfig) -> MergeOutcome:
+    """Initial alignment (global features), the initial transform (paired trunks and grounds), then the
+    semantic bundle adjustment of both sides (merge.method)."""
+    def side_input(sm: SideMap) -> AlignmentSide:
+        t = sm.trunks
+        return AlignmentSide(sm.cloud_points, sm.keyframe_poses, np.array([x.base for x in t]).reshape(-1, 3),
+                             np.array([_merge_axis(x) for x in t]).reshape(-1, 3), np.array([x.id for x in t], int),
+                             sm.scale_free, np.array([np.nan if x.diameter_m is None else x.diameter_m for x in t]))
+
+    if np.array_equal(front.keyframe_stamps, back.keyframe_stamps):
+        raise AlignmentError("the two sides are one recording (the same keyframe stamps): a merge needs one "
+                             "recording of each side of the row")
+    rng = np.random.default_rng(cfg.seed)
+    t0 = time.perf_counter()
+    fa, ba = side_input(front), side_input(back)
+    if cfg.merge.method == "icp":
+        T = icp_merge(fa, ba, cfg.alignment, rng)
+        pairs_icp = pair_trunks(fa, ba, T, cfg.alignment.pair_radius_m)
+        return MergeOutcome("icp", T, pairs_icp, None, None, None, None, {"icp": time.perf_counter() - t0})
+    al = align_sides(fa, ba, cfg.alignment, rng)
+    seconds = {"alignment": time.perf_counter() - t0}
+    # Too few trunks seen from both sides: the global features alone (flagged). When the fallback was taken because
+    # the candidate pairs disagreed and its own alignment pairs min_pairs trunks, those pairs go on to the initial
+    # transform and the semantic BA as usual (the steady scanned-tree row: 5.3 deg / 106 mm -> 1.0 deg / 38 mm).
+    if al.method == "trunk_lines" and len(al.pairs) < max(2, cfg.alignment.min_pairs):
+        return MergeOutcome(GLOBAL_FEATURES, al.T_front_back, al.pairs, al, None, None, None, seconds)
+    by_f = {t.id: t for t in front.trunks}
+    by_b = {t.id: t for t in back.trunks}
+    pairs = []
+    for i, j in al.pairs:
+        f, b = by_f[i], by_b[j]
+        both = f.ground is not None and b.ground is not None
+        pairs.append(SemanticPair(i, j, _merge_axis(f), f.base, _merge_axis(b), b.base,
+                                  (f.ground.normal, f.ground.point) if both else None,
+                                  (b.ground.normal, b.ground.point) if both else None,
+                                  (f.ground.support_offset_m, b.ground.support_offset_m) if both else (0.0, 0.0)))
+    prior = None
+    if cfg.merge.sigma_alignment_height_m > 0:
+        c_b = np.mean([p.origin_b for p in pairs], axis=0)  # (3,) the paired back trunks' centre
+        prior = HeightPrior(al.front.T_canon_odom[1, :3], c_b, al.T_front_back[:3, :3] @ c_b + al.T_front_back[:3, 3])
+    t0 = time.perf_counter()
+    it = initial_transform(pairs, cfg.merge, prior)
+    seconds["initial_transform"] = time.perf_counter() - t0
+    sba = shapes = None
+    if cfg.merge.method == "semantic_ba":
+        t0 = time.perf_counter()
+        h = cfg.trunks.diameter_height_m
+        back_poses = it.T_front_back[None] @ back.keyframe_poses
+        posts = post_shapes([(front.posts, front.keyframe_poses), (back.posts, back_poses)])
+        row = _row_direction(np.array([by_f[i].base for i, _ in al.pairs]))  # map = odom_front
+        shapes = (SideShapes(front.keyframe_poses, _trunk_shapes(front, [i for i, _ in al.pairs], np.eye(4), h, row),
+                             posts[0]),
+                  SideShapes(back_poses, _trunk_shapes(back, [j for _, j in al.pairs], it.T_front_back, h, row),
+                             posts[1]))
+        anchor = None
+        if prior is not None and cfg.semantic_ba.height_sigma_m > 0:  # the initial transform's height prior
+            point = it.T_front_back[:3, :3] @ prior.point_b + it.T_front_back[:3, 3]
+            anchor = HeightAnchor(prior.up, point, float(prior.up @ prior.target_f), cfg.semantic_ba.height_sigma_m)
+        sba = semantic_bundle_adjust(*shapes, cfg.semantic_ba, anchor)
+        seconds["semantic_ba"] = time.perf_counter() - t0
+    return MergeOutcome(cfg.merge.method, it.T_front_back, al.pairs, al, it, sba, shapes, seconds)
+
+
+def map_poses(m: MergeOutcome, sides: dict[str, SideMap]) -> dict[str, np.ndarray]:
+    """side -> (K, 4, 4) T_map_cam of its keyframes after the merge (the semantic BA's when it ran)."""
+    if m.sba is not None:
+        return {"front": m.sba.front_poses, "back": m.sba.back_poses}
+    return {"front": sides["front"].keyframe_poses, "back": m.T_front_back[None] @ sides["back"].keyframe_poses}
+
+
+def clouds_in_map(m: MergeOutcome, sides: dict[str, SideMap]) -> dict[str, np.ndarray]:
+    """side -> (P, 3) its fused cloud in map, carried along with its keyframes by the merge."""
+    return {side: move_with_keyframes(sides[side].cloud_points, sides[side].keyframe_poses, P)
+            for side, P in map_poses(m, sides).items()}
+
+
+# m: the union of both sides' points near a tree is cropped to this cube (half side) before the local
+# ground's disk is cut out of it (cheaper than measuring every point of the row against every axis).
+_FOOT_CROP_M = 1.0
+
+
+def _two_side_ground(clouds: dict[str, SlabIndex], Tt: np.ndarray, foot: np.ndarray, radius: float,
+                     cfg: OrchardConfig, rng: np.random.Generator):
+    """The tree's local ground fitted to both sides' points around the shared trunk (frame `map`).
+
+    Each side sees its half of the 0.5 m disk, often only a patch of it away from the trunk, and a plane
+    through a patch is an extrapolation at the trunk. Together the sides see the disk from both
+    directions: the plane is pinned on both sides of the trunk (the paper's semantic BA shares one plane
+    per tree for the same reason). Tt (4, 4) the shared trunk frame (z up its axis); foot (3,) the
+    per-side estimate of the foot (the disk's centre); radius m the trunk's. None if no plane passes."""
+    near = [c.within_cube(foot, _FOOT_CROP_M) for c in clouds.values()]
+    pts = np.concatenate(near) if near else np.zeros((0, 3))
+    z = Tt[:3, 2]
+    o_bottom = Tt[:3, 3] + float((foot - Tt[:3, 3]) @ z) * z
+    return ground_around_trunk(pts, o_bottom, Cylinder(z, Tt[:3, 3], radius), cfg.ground, rng)
+
+
+def two_side_trees(m: MergeOutcome, sides: dict[str, SideMap], cfg: OrchardConfig,
+                   clouds: dict[str, np.ndarray] | None = None, worker: "TrunkWorker | None" = None
+                   ) -> list[ResultTree]:
+    """Every trunk of either side as a tree in map: paired ones with the two-side diameter of eq.
+    objectCylinderFB (one radius from both sides' band points and views) and the foot on the local
+    ground fitted to both sides' points, the others flagged one-sided. clouds: clouds_in_map(m, sides).
+    worker: fits every other tree's two-side diameter meanwhile (the other core is idle in the merge)."""
+    tp = cfg.trunks
+    if clouds is None and m.sba is not None:
+        clouds = clouds_in_map(m, sides)
+    near = {side: SlabIndex(P) for side, P in clouds.items()} if clouds is not None else {}
+    by = {side: {t.id: t for t in sides[side].trunks} for side in ("front", "back")}
+    T_fb = m.T_front_back
+    intr = sides["front"].intrinsics
+    worker = worker if worker is not None and worker.spawned else None
+    # each tree's draws from a generator of its own, so that it does not matter which process fits it
+    band_pairs = {k: BandPair([(f.band_points, f.band_normals, f.band_views, f.band.cylinder),
+                               (b.band_points, b.band_normals, b.band_views, b.band.cylinder)], intr, tp,
+                              (cfg.seed, k, 1))
+                  for k, (f, b) in enumerate((by["front"][i], by["back"][j]) for i, j in m.pairs)
+                  if f.band is not None and b.band is not None}
+    elsewhere = {k: worker.submit(two_side_diameter, job) for n, (k, job) in enumerate(band_pairs.items())
+                 if n % 2} if worker is not None else {}
+    if worker is not None:
+        worker.start()
+    trees: list[ResultTree] = []
+    paired = {"front": set(), "back": set()}
+    for k, (i, j) in enumerate(m.pairs):
+        f, b = by["front"][i], by["back"][j]
+        paired["front"].add(i)
+        paired["back"].add(j)
+        rng = np.random.default_rng((cfg.seed, k))
+        if m.sba is not None and m.shapes is not None:
+            # The shared trunk after the semantic BA, down its axis to the ground: each side's base placed
+            # by that side's adjusted camera. A local ground (within 0.5 m) is the best evidence of the
+            # foot, the wide ground (1 m, rougher: on slope_weeds a tree with a local ground on one side
+            # and a wide one on the other came out 7 cm high from their mean) the next; a side with
+            # neither has only its lowest trunk point (weeds may hide the foot: 15 cm too high on the
+            # 2-tree test row). The best kind present decides; with neither, the lower base.
+            Tt = m.sba.trunks_map[k]
+            z = Tt[:3, 2]
+            heights = []
+            for shapes, poses, lm in ((m.shapes[0], m.sba.front_poses, f), (m.shapes[1], m.sba.back_poses, b)):
+                sh = shapes.trunk(k)
+                Ts = poses[sh.keyframe] @ sh.T_cam_trunk
+                base_map = Ts[:3, 3] - tp.diameter_height_m * Ts[:3, 2]
+                heights.append((_ground_kind(lm), float((base_map - Tt[:3, 3]) @ z)))
+            best = max(kind for kind, _ in heights)
+            chosen = [hh for kind, hh in heights if kind == best]
+            pos = Tt[:3, 3] + (float(np.mean(chosen)) if best else min(chosen)) * z
+            r = max([t.diameter_m for t in (f, b) if t.diameter_m is not None] or [0.1]) / 2  # m; 0.1: a typical trunk
+            shared = _two_side_ground(near, Tt, pos, r, cfg, rng)
+            if shared is not None:
+                pos = shared.point
+        else:  # the feet on the best ground either side has (as above), each side's carried into map
+            feet = [(_ground_kind(f), f.base), (_ground_kind(b), T_fb[:3, :3] @ b.base + T_fb[:3, 3])]
+            best = max(kind for kind, _ in feet)
+            pos = np.mean([p for kind, p in feet if kind == best], axis=0)
+        diameter, flags = None, []
+        if k in band_pairs:
+            diameter = (worker.result(elsewhere[k], two_side_diameter, band_pairs[k]) if k in elsewhere
+                        else two_side_diameter(band_pairs[k]))
+            if diameter is None:
+                flags.append("two_side_fit_failed")
+        if diameter is None:
+            one = [t.diameter_m for t in (f, b) if t.diameter_m is not None]
+            diameter = float(np.mean(one)) if one else None
+            if not one:
+                flags.append("trunk_hidden_at_diameter_height")
+        trees.append(ResultTree(len(trees), tuple(float(v) for v in pos), diameter, per_side={
+            "front": {"trunk_id": i, "diameter_m": f.diameter_m},
+            "back": {"trunk_id": j, "diameter_m": b.diameter_m}}, flags=tuple(flags) + _carried_flags(f, b)))
+    for side, T in (("front", np.eye(4)), ("back", T_fb)):
+        for t in sides[side].trunks:
+            if t.id in paired[side]:
+                continue
+            pos = T[:3, :3] @ t.base + T[:3, 3]
+            trees.append(ResultTree(len(trees), tuple(float(v) for v in pos), t.diameter_m,
+                                    per_side={side: {"trunk_id": t.id, "diameter_m": t.diameter_m}},
+                                    flags=(f"seen_from_{side}_only",) + _carried_flags(t)))
+    return trees
+
+
+def _carried_flags(*trunks: TrunkLandmark) -> tuple[str, ...]:
+    """The trunk flags a tree carries: the detector was down near it on some side (a tree there may be
+    missing, or seen from one side only because of it)."""
+    return (DETECTOR_UNAVAILABLE,) if any(DETECTOR_UNAVAILABLE in t.flags for t in trunks) else ()
+
+
+def merge_to_trees(sides: dict[str, SideMap], cfg: OrchardConfig, worker: "TrunkWorker | None" = None
+                   ) -> tuple[MergeOutcome, dict[str, np.ndarray], list[ResultTree]]:
+    """The two sides merged (merge_sides), their clouds carried into map, and the trees: what `run` and the
+    side merger node write. AlignmentError (MergeRefusedError's base) when the merge is refused. worker:
+    fits half the trees' two-side diameters (two_side_trees)."""
+    merged = merge_sides(sides["front"], sides["back"], cfg)
+    clouds = clouds_in_map(merged, sides)
+    trees = two_side_trees(merged, sides, cfg, clouds, worker)
+    if merged.method == GLOBAL_FEATURES:
+        log.warning("too few trunks seen from both sides for the semantic merge: the sides were merged from the "
+                    "global features alone (front views, each side's trunk line; error up to a trunk's width), "
+                    "every tree is flagged %s", MERGED_BY_GLOBAL_FEATURES)
+        trees = [replace(t, flags=t.flags + (MERGED_BY_GLOBAL_FEATURES,)) for t in trees]
+    log.info("sides merged (%s) on %d trunk pairs%s", merged.method, len(merged.pairs),
+             ": " + "; ".join(merged.alignment.log) if merged.alignment is not None else "")
+    return merged, clouds, trees

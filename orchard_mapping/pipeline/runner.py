@@ -1,0 +1,137 @@
+"""`run`: bags in, result folder out (docs/results.md), staged so that a failed run leaves no half-written
+result."""
+
+from __future__ import annotations
+
+import logging
+import os
+import shutil
+import tempfile
+import time
+from dataclasses import dataclass
+from pathlib import Path
+
+import numpy as np
+
+from orchard_mapping.config import OrchardConfig, dump_yaml
+from orchard_mapping.core.sidemap import SideMap
+from orchard_mapping.errors import AlignmentError, MergeRefusedError
+from orchard_mapping.io.results import (
+    atomic_write_text,
+    write_timings,
+    write_trees,
+)
+from orchard_mapping.pipeline.merge import merge_to_trees
+from orchard_mapping.pipeline.outputs import MERGE_OUTPUTS, write_landmarks, write_merge, write_side
+from orchard_mapping.pipeline.side import PendingSide, reconstruct_drive, reconstruct_side_later
+from orchard_mapping.pipeline.sides import DRIVE, Progress, Timings, open_sides, side_mask
+from orchard_mapping.pipeline.trunks import TrunkWorker
+
+log = logging.getLogger(__name__)
+
+
+@dataclass(frozen=True)
+class RunResult:
+    out_dir: Path
+    sides: dict[str, SideMap]
+    timings: Timings
+    merge_refused: str | None = None  # why the sides were not merged (run raises MergeRefusedError)
+
+
+def run(front: str | Path, back: str | Path | None, out: str | Path, cfg: OrchardConfig,
+        progress: Progress | None = None, trunk_worker: bool = False) -> RunResult:
+    """Reconstruct each side and write the result folder.
+
+    trunk_worker: model the first side's trunks, the last side's posts and half the merge's two-side fits in
+    a spawned worker process (TrunkWorker; same results). `orchard-map run` does. A spawned process imports the
+    caller's main module again: a script that calls this with trunk_worker=True needs the
+    `if __name__ == "__main__":` guard that Python's multiprocessing asks for.
+
+    Everything is written into a staging folder first and moved into `out` only when the whole run
+    succeeded: a failed run leaves no half-written result (earlier results in `out` stay as they were).
+    """
+    out = Path(out)
+    created = [d for d in (out, *out.parents) if not d.exists()]  # folders this run makes (deepest first)
+    out.mkdir(parents=True, exist_ok=True)
+    stage = Path(tempfile.mkdtemp(prefix=".staging-", dir=out))
+    try:
+        result = _run(Path(front), Path(back) if back is not None else None, stage, cfg, progress, trunk_worker)
+        for f in sorted(stage.iterdir()):
+            os.replace(f, out / f.name)
+    except BaseException:
+        shutil.rmtree(stage, ignore_errors=True)
+        for d in created:  # a failed run leaves no folder it created itself (rmdir: only if still empty)
+            try:
+                d.rmdir()
+            except OSError:
+                break
+        raise
+    finally:
+        shutil.rmtree(stage, ignore_errors=True)
+    if result.merge_refused is not None:
+        # The sides' own results are complete and stay; the merge is not guessed (exit code 2), and
+        # an earlier run's merge outputs in `out` would now contradict them.
+        for name in MERGE_OUTPUTS:
+            for f in out.glob(name):
+                f.unlink()
+        raise MergeRefusedError(
+            f"the two sides were not merged: {result.merge_refused}. Each side's results (trajectories, "
+            f"clouds, trunks.json) are in {out}; no side_merge.json and no trees in map were written. "
+            "Run with --set merge.method=off to reconstruct the sides without trying to merge them.")
+    return RunResult(out, result.sides, result.timings, result.merge_refused)
+
+
+def _run(front: Path, back: Path | None, out: Path, cfg: OrchardConfig, progress: Progress | None,
+         trunk_worker: bool) -> RunResult:
+    timings = Timings()
+    t0 = t_start = time.perf_counter()
+    seqs = open_sides(front, back, cfg)
+    timings.add("read_bags", time.perf_counter() - t0)
+    labelled = back is None
+    sides: dict[str, SideMap] = {}
+    refused: str | None = None
+    # Two sides with trunks: the first side's trunks are modelled in a worker process while the next is finished
+    worker = (TrunkWorker() if trunk_worker and cfg.trunks.source != "off" and cfg.input.mode == "rgbd"
+              and (DRIVE in seqs or len(seqs) > 1) else None)
+    try:
+        if DRIVE in seqs:
+            seq = seqs.pop(DRIVE)
+            timings.frames += len(seq)
+            timings.recording_duration_s += seq.duration
+            for side, sm in reconstruct_drive(seq, cfg, timings, progress, worker).items():
+                sides[side] = sm
+                write_side(out, sm)
+        pending: dict[str, PendingSide] = {}
+        for i, (side, seq) in enumerate(seqs.items()):
+            timings.frames += int(np.sum(side_mask(seq, side))) if labelled else len(seq)
+            if labelled:
+                st = seq.stamps[side_mask(seq, side)]
+                timings.recording_duration_s += float(st[-1] - st[0]) if len(st) > 1 else 0.0
+            else:
+                timings.recording_duration_s += seq.duration
+            pending[side] = reconstruct_side_later(seq, side, cfg, timings, labelled, progress, worker,
+                                                   here=i == len(seqs) - 1)
+        for side, p in pending.items():
+            sides[side] = p()
+            write_side(out, sides[side])
+        if cfg.trunks.source != "off" and cfg.input.mode == "rgbd":
+            write_landmarks(out, sides, cfg)
+            if cfg.merge.method != "off" and set(sides) == {"front", "back"}:
+                t0 = time.perf_counter()
+                try:
+                    merged, clouds, trees = merge_to_trees(sides, cfg, worker)
+                except AlignmentError as err:
+                    log.warning("side merge refused: %s (no side_merge.json written)", err)
+                    refused = str(err)
+                else:
+                    write_merge(out, merged, sides, clouds)
+                    write_trees(out, trees, frame="map")
+                timings.add("merge", time.perf_counter() - t0)
+    finally:
+        if worker is not None:
+            worker.close()
+    timings.wall_s = time.perf_counter() - t_start
+    write_timings(out / "timings.json", timings.stages, frames=timings.frames,
+                  recording_duration_s=timings.recording_duration_s, wall_s=timings.wall_s)
+    atomic_write_text(out / "config.effective.yaml", dump_yaml(cfg))
+    return RunResult(out, sides, timings, refused)
