@@ -11,7 +11,6 @@ import numpy as np
 
 from orchard_mapping.config import OrchardConfig
 from orchard_mapping.core.alignment import AlignmentSide, SideAlignment, align_sides, icp_merge, pair_trunks
-from orchard_mapping.core.cylinder import Cylinder
 from orchard_mapping.core.geometry import SlabIndex, move_with_keyframes
 from orchard_mapping.core.merge import HeightPrior, InitialTransform, SemanticPair, initial_transform
 from orchard_mapping.core.posts import post_shapes
@@ -19,14 +18,20 @@ from orchard_mapping.core.semantic_ba import (
     HeightAnchor,
     SemanticBAResult,
     SideShapes,
-    TrunkShape,
     semantic_bundle_adjust,
-    trunk_frame,
 )
 from orchard_mapping.core.sidemap import SideMap
+from orchard_mapping.core.trees import (
+    foot_from_feet,
+    foot_on_shared_axis,
+    ground_kind,
+    merge_axis,
+    row_direction,
+    trunk_shapes,
+    two_side_ground,
+)
 from orchard_mapping.core.trunks import (
     TrunkLandmark,
-    ground_around_trunk,
 )
 from orchard_mapping.errors import AlignmentError
 from orchard_mapping.io.results import (
@@ -57,53 +62,13 @@ GLOBAL_FEATURES = "global_features"
 MERGED_BY_GLOBAL_FEATURES = "merged_by_global_features"
 
 
-def _ground_kind(lm: TrunkLandmark) -> int:
-    """What a trunk's foot stands on: 2 its local ground, 1 the wider ground (no local one), 0 neither
-    (its lowest visible point)."""
-    return 2 if lm.ground is not None else 1 if "diameter_height_from_wide_ground" in lm.flags else 0
-
-
-def _merge_axis(lm: TrunkLandmark) -> np.ndarray:
-    """The trunk axis the merge uses: with the taper modelled when it was fitted (TrunkLandmark.merge_axis)."""
-    return lm.merge_axis if lm.merge_axis is not None else lm.axis
-
-
-def _row_direction(bases: np.ndarray) -> np.ndarray:
-    """(3,) unit: the row's direction through trunk bases (T, 3) (their first principal axis), T >= 2."""
-    return np.linalg.svd(bases - bases.mean(axis=0), full_matrices=False)[2][0]
-
-
-def _trunk_shapes(sm: SideMap, ids: list[int], T_map_odom: np.ndarray, height_m: float, row_map: np.ndarray
-                  ) -> list[TrunkShape]:
-    """Each paired trunk of a side as the semantic BA measures it: its frame (origin on the whole-trunk
-    axis at the diameter height, z along it, x along the row: row_map (3,) in map) and local ground, in the camera of the
-    observation that saw most of it. (The band cylinder's own axis, fitted on 16 cm of trunk, tilts
-    5-18 deg off the whole trunk's on the 10-tree rows: only its radius is used.)"""
-    by_id = {t.id: t for t in sm.trunks}
-    out = []
-    for tree, lid in enumerate(ids):
-        lm = by_id[lid]
-        k = max(lm.observations, key=lambda o: o.band_pixels + int(o.detection.mask.sum())).keyframe
-        axis_map = T_map_odom[:3, :3] @ _merge_axis(lm)
-        origin_map = T_map_odom[:3, :3] @ (lm.base + height_m * _merge_axis(lm)) + T_map_odom[:3, 3]
-        T_map_cam = T_map_odom @ sm.keyframe_poses[k]
-        ground = None
-        if lm.ground is not None:
-            R, t = sm.keyframe_poses[k][:3, :3], sm.keyframe_poses[k][:3, 3]
-            n = np.asarray(lm.ground.normal, float)
-            ground = np.array([*(R.T @ n), n @ t + lm.ground.offset])
-        out.append(TrunkShape(tree, k, np.linalg.inv(T_map_cam) @ trunk_frame(origin_map, axis_map, row_map), ground,
-                              grounded=_ground_kind(lm) > 0))
-    return out
-
-
 def merge_sides(front: SideMap, back: SideMap, cfg: OrchardConfig) -> MergeOutcome:
     """Initial alignment (global features), the initial transform (paired trunks and grounds), then the
     semantic bundle adjustment of both sides (merge.method)."""
     def side_input(sm: SideMap) -> AlignmentSide:
         t = sm.trunks
         return AlignmentSide(sm.cloud_points, sm.keyframe_poses, np.array([x.base for x in t]).reshape(-1, 3),
-                             np.array([_merge_axis(x) for x in t]).reshape(-1, 3), np.array([x.id for x in t], int),
+                             np.array([merge_axis(x) for x in t]).reshape(-1, 3), np.array([x.id for x in t], int),
                              sm.scale_free, np.array([np.nan if x.diameter_m is None else x.diameter_m for x in t]))
 
     if np.array_equal(front.keyframe_stamps, back.keyframe_stamps):
@@ -129,7 +94,7 @@ def merge_sides(front: SideMap, back: SideMap, cfg: OrchardConfig) -> MergeOutco
     for i, j in al.pairs:
         f, b = by_f[i], by_b[j]
         both = f.ground is not None and b.ground is not None
-        pairs.append(SemanticPair(i, j, _merge_axis(f), f.base, _merge_axis(b), b.base,
+        pairs.append(SemanticPair(i, j, merge_axis(f), f.base, merge_axis(b), b.base,
                                   (f.ground.normal, f.ground.point) if both else None,
                                   (b.ground.normal, b.ground.point) if both else None,
                                   (f.ground.support_offset_m, b.ground.support_offset_m) if both else (0.0, 0.0)))
@@ -146,10 +111,10 @@ def merge_sides(front: SideMap, back: SideMap, cfg: OrchardConfig) -> MergeOutco
         h = cfg.trunks.diameter_height_m
         back_poses = it.T_front_back[None] @ back.keyframe_poses
         posts = post_shapes([(front.posts, front.keyframe_poses), (back.posts, back_poses)])
-        row = _row_direction(np.array([by_f[i].base for i, _ in al.pairs]))  # map = odom_front
-        shapes = (SideShapes(front.keyframe_poses, _trunk_shapes(front, [i for i, _ in al.pairs], np.eye(4), h, row),
+        row = row_direction(np.array([by_f[i].base for i, _ in al.pairs]))  # map = odom_front
+        shapes = (SideShapes(front.keyframe_poses, trunk_shapes(front, [i for i, _ in al.pairs], np.eye(4), h, row),
                              posts[0]),
-                  SideShapes(back_poses, _trunk_shapes(back, [j for _, j in al.pairs], it.T_front_back, h, row),
+                  SideShapes(back_poses, trunk_shapes(back, [j for _, j in al.pairs], it.T_front_back, h, row),
                              posts[1]))
         anchor = None
         if prior is not None and cfg.semantic_ba.height_sigma_m > 0:  # the initial transform's height prior
@@ -171,27 +136,6 @@ def clouds_in_map(m: MergeOutcome, sides: dict[str, SideMap]) -> dict[str, np.nd
     """side -> (P, 3) its fused cloud in map, carried along with its keyframes by the merge."""
     return {side: move_with_keyframes(sides[side].cloud_points, sides[side].keyframe_poses, P)
             for side, P in map_poses(m, sides).items()}
-
-
-# m: the union of both sides' points near a tree is cropped to this cube (half side) before the local
-# ground's disk is cut out of it (cheaper than measuring every point of the row against every axis).
-_FOOT_CROP_M = 1.0
-
-
-def _two_side_ground(clouds: dict[str, SlabIndex], Tt: np.ndarray, foot: np.ndarray, radius: float,
-                     cfg: OrchardConfig, rng: np.random.Generator):
-    """The tree's local ground fitted to both sides' points around the shared trunk (frame `map`).
-
-    Each side sees its half of the 0.5 m disk, often only a patch of it away from the trunk, and a plane
-    through a patch is an extrapolation at the trunk. Together the sides see the disk from both
-    directions: the plane is pinned on both sides of the trunk (the paper's semantic BA shares one plane
-    per tree for the same reason). Tt (4, 4) the shared trunk frame (z up its axis); foot (3,) the
-    per-side estimate of the foot (the disk's centre); radius m the trunk's. None if no plane passes."""
-    near = [c.within_cube(foot, _FOOT_CROP_M) for c in clouds.values()]
-    pts = np.concatenate(near) if near else np.zeros((0, 3))
-    z = Tt[:3, 2]
-    o_bottom = Tt[:3, 3] + float((foot - Tt[:3, 3]) @ z) * z
-    return ground_around_trunk(pts, o_bottom, Cylinder(z, Tt[:3, 3], radius), cfg.ground, rng)
 
 
 def two_side_trees(m: MergeOutcome, sides: dict[str, SideMap], cfg: OrchardConfig,
@@ -228,11 +172,7 @@ def two_side_trees(m: MergeOutcome, sides: dict[str, SideMap], cfg: OrchardConfi
         rng = np.random.default_rng((cfg.seed, k))
         if m.sba is not None and m.shapes is not None:
             # The shared trunk after the semantic BA, down its axis to the ground: each side's base placed
-            # by that side's adjusted camera. A local ground (within 0.5 m) is the best evidence of the
-            # foot, the wide ground (1 m, rougher: on slope_weeds a tree with a local ground on one side
-            # and a wide one on the other came out 7 cm high from their mean) the next; a side with
-            # neither has only its lowest trunk point (weeds may hide the foot: 15 cm too high on the
-            # 2-tree test row). The best kind present decides; with neither, the lower base.
+            # by that side's adjusted camera, the foot on the best ground either side has (foot_on_shared_axis).
             Tt = m.sba.trunks_map[k]
             z = Tt[:3, 2]
             heights = []
@@ -240,18 +180,15 @@ def two_side_trees(m: MergeOutcome, sides: dict[str, SideMap], cfg: OrchardConfi
                 sh = shapes.trunk(k)
                 Ts = poses[sh.keyframe] @ sh.T_cam_trunk
                 base_map = Ts[:3, 3] - tp.diameter_height_m * Ts[:3, 2]
-                heights.append((_ground_kind(lm), float((base_map - Tt[:3, 3]) @ z)))
-            best = max(kind for kind, _ in heights)
-            chosen = [hh for kind, hh in heights if kind == best]
-            pos = Tt[:3, 3] + (float(np.mean(chosen)) if best else min(chosen)) * z
+                heights.append((ground_kind(lm), float((base_map - Tt[:3, 3]) @ z)))
+            pos = foot_on_shared_axis(Tt, heights)
             r = max([t.diameter_m for t in (f, b) if t.diameter_m is not None] or [0.1]) / 2  # m; 0.1: a typical trunk
-            shared = _two_side_ground(near, Tt, pos, r, cfg, rng)
+            shared = two_side_ground(near, Tt, pos, r, cfg.ground, rng)
             if shared is not None:
                 pos = shared.point
         else:  # the feet on the best ground either side has (as above), each side's carried into map
-            feet = [(_ground_kind(f), f.base), (_ground_kind(b), T_fb[:3, :3] @ b.base + T_fb[:3, 3])]
-            best = max(kind for kind, _ in feet)
-            pos = np.mean([p for kind, p in feet if kind == best], axis=0)
+            feet = [(ground_kind(f), f.base), (ground_kind(b), T_fb[:3, :3] @ b.base + T_fb[:3, 3])]
+            pos = foot_from_feet(feet)
         diameter, flags = None, []
         if k in band_pairs:
             diameter = (worker.result(elsewhere[k], two_side_diameter, band_pairs[k]) if k in elsewhere

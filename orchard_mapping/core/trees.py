@@ -1,0 +1,96 @@
+"""Per-tree geometry of the two-side merge, with no files: what a trunk's foot stands on, the trunk axis and the
+row direction the merge uses, each paired trunk as the semantic BA measures it, the tree's foot chosen from both
+sides' estimates, and the tree's local ground fitted to both sides' points (pipeline.merge)."""
+
+from __future__ import annotations
+
+import numpy as np
+
+from orchard_mapping.core.cylinder import Cylinder
+from orchard_mapping.core.geometry import SlabIndex
+from orchard_mapping.core.ground import GroundParams
+from orchard_mapping.core.semantic_ba import TrunkShape, trunk_frame
+from orchard_mapping.core.sidemap import SideMap
+from orchard_mapping.core.trunks import TrunkLandmark, ground_around_trunk
+
+
+def ground_kind(lm: TrunkLandmark) -> int:
+    """What a trunk's foot stands on: 2 its local ground, 1 the wider ground (no local one), 0 neither
+    (its lowest visible point)."""
+    return 2 if lm.ground is not None else 1 if "diameter_height_from_wide_ground" in lm.flags else 0
+
+
+def merge_axis(lm: TrunkLandmark) -> np.ndarray:
+    """The trunk axis the merge uses: with the taper modelled when it was fitted (TrunkLandmark.merge_axis)."""
+    return lm.merge_axis if lm.merge_axis is not None else lm.axis
+
+
+def row_direction(bases: np.ndarray) -> np.ndarray:
+    """(3,) unit: the row's direction through trunk bases (T, 3) (their first principal axis), T >= 2."""
+    return np.linalg.svd(bases - bases.mean(axis=0), full_matrices=False)[2][0]
+
+
+def trunk_shapes(sm: SideMap, ids: list[int], T_map_odom: np.ndarray, height_m: float, row_map: np.ndarray
+                 ) -> list[TrunkShape]:
+    """Each paired trunk of a side as the semantic BA measures it: its frame (origin on the whole-trunk
+    axis at the diameter height, z along it, x along the row: row_map (3,) in map) and local ground, in the camera of the
+    observation that saw most of it. (The band cylinder's own axis, fitted on 16 cm of trunk, tilts
+    5-18 deg off the whole trunk's on the 10-tree rows: only its radius is used.)"""
+    by_id = {t.id: t for t in sm.trunks}
+    out = []
+    for tree, lid in enumerate(ids):
+        lm = by_id[lid]
+        k = max(lm.observations, key=lambda o: o.band_pixels + int(o.detection.mask.sum())).keyframe
+        axis_map = T_map_odom[:3, :3] @ merge_axis(lm)
+        origin_map = T_map_odom[:3, :3] @ (lm.base + height_m * merge_axis(lm)) + T_map_odom[:3, 3]
+        T_map_cam = T_map_odom @ sm.keyframe_poses[k]
+        ground = None
+        if lm.ground is not None:
+            R, t = sm.keyframe_poses[k][:3, :3], sm.keyframe_poses[k][:3, 3]
+            n = np.asarray(lm.ground.normal, float)
+            ground = np.array([*(R.T @ n), n @ t + lm.ground.offset])
+        out.append(TrunkShape(tree, k, np.linalg.inv(T_map_cam) @ trunk_frame(origin_map, axis_map, row_map), ground,
+                              grounded=ground_kind(lm) > 0))
+    return out
+
+
+# m: the union of both sides' points near a tree is cropped to this cube (half side) before the local
+# ground's disk is cut out of it (cheaper than measuring every point of the row against every axis).
+FOOT_CROP_M = 1.0
+
+
+def two_side_ground(clouds: dict[str, SlabIndex], Tt: np.ndarray, foot: np.ndarray, radius: float,
+                    ground: GroundParams, rng: np.random.Generator):
+    """The tree's local ground fitted to both sides' points around the shared trunk (frame `map`).
+
+    Each side sees its half of the 0.5 m disk, often only a patch of it away from the trunk, and a plane
+    through a patch is an extrapolation at the trunk. Together the sides see the disk from both
+    directions: the plane is pinned on both sides of the trunk (the paper's semantic BA shares one plane
+    per tree for the same reason). Tt (4, 4) the shared trunk frame (z up its axis); foot (3,) the
+    per-side estimate of the foot (the disk's centre); radius m the trunk's; ground: the configuration's
+    ground parameters (cfg.ground). None if no plane passes."""
+    near = [c.within_cube(foot, FOOT_CROP_M) for c in clouds.values()]
+    pts = np.concatenate(near) if near else np.zeros((0, 3))
+    z = Tt[:3, 2]
+    o_bottom = Tt[:3, 3] + float((foot - Tt[:3, 3]) @ z) * z
+    return ground_around_trunk(pts, o_bottom, Cylinder(z, Tt[:3, 3], radius), ground, rng)
+
+
+def foot_on_shared_axis(Tt: np.ndarray, heights: list[tuple[int, float]]) -> np.ndarray:
+    """(3,) map: the foot on the shared trunk Tt (4, 4; z up its axis) after the semantic BA; heights: per side,
+    (ground_kind of its trunk, its base's height m along z from Tt's origin, placed by that side's adjusted
+    camera). A local ground (within 0.5 m) is the best evidence of the foot, the wide ground (1 m, rougher: on
+    slope_weeds a tree with a local ground on one side and a wide one on the other came out 7 cm high from their
+    mean) the next; a side with neither has only its lowest trunk point (weeds may hide the foot: 15 cm too high
+    on the 2-tree test row). The best kind present decides; with neither, the lower base."""
+    z = Tt[:3, 2]
+    best = max(kind for kind, _ in heights)
+    chosen = [hh for kind, hh in heights if kind == best]
+    return Tt[:3, 3] + (float(np.mean(chosen)) if best else min(chosen)) * z
+
+
+def foot_from_feet(feet: list[tuple[int, np.ndarray]]) -> np.ndarray:
+    """(3,) map: the tree's foot without the semantic BA: the mean of the feet on the best ground either side has
+    (as in foot_on_shared_axis); feet: per side, (ground_kind of its trunk, its base (3,) carried into map)."""
+    best = max(kind for kind, _ in feet)
+    return np.mean([p for kind, p in feet if kind == best], axis=0)

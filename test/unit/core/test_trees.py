@@ -1,0 +1,73 @@
+"""core.trees: the per-tree geometry of the two-side merge (what a foot stands on, the merge's trunk axis and
+row direction, the foot chosen from both sides' estimates, the local ground fitted to both sides' points)."""
+
+from types import SimpleNamespace
+
+import numpy as np
+
+from orchard_mapping.core.geometry import SlabIndex
+from orchard_mapping.core.ground import GroundParams
+from orchard_mapping.core.trees import (
+    foot_from_feet,
+    foot_on_shared_axis,
+    ground_kind,
+    merge_axis,
+    row_direction,
+    two_side_ground,
+)
+
+
+def _trunk(ground=None, flags=(), axis=(0.0, 0.0, 1.0), merge=None):
+    return SimpleNamespace(ground=ground, flags=list(flags), axis=np.array(axis), merge_axis=merge)
+
+
+def test_ground_kind_ranks_local_over_wide_over_none():
+    assert ground_kind(_trunk(ground=object())) == 2
+    assert ground_kind(_trunk(flags=["diameter_height_from_wide_ground"])) == 1
+    assert ground_kind(_trunk()) == 0
+
+
+def test_merge_axis_prefers_the_tapered_fit():
+    tapered = np.array([0.0, 0.1, 1.0])
+    assert np.array_equal(merge_axis(_trunk(merge=tapered)), tapered)
+    assert np.array_equal(merge_axis(_trunk()), [0.0, 0.0, 1.0])
+
+
+def test_row_direction_is_the_bases_principal_axis():
+    bases = np.array([[0.0, 0.0, 0.0], [2.0, 0.01, 0.0], [4.0, -0.01, 0.0], [6.0, 0.0, 0.0]])
+    d = row_direction(bases)
+    assert abs(np.linalg.norm(d) - 1.0) < 1e-12
+    assert abs(abs(d[0]) - 1.0) < 1e-4
+
+
+def test_foot_on_shared_axis_takes_the_best_ground_kind():
+    Tt = np.eye(4)
+    Tt[:3, 3] = [1.0, 2.0, 0.5]
+    # a local ground on one side beats the other's lowest trunk point
+    assert np.allclose(foot_on_shared_axis(Tt, [(2, -0.5), (0, -0.3)]), [1.0, 2.0, 0.0])
+    # the same kind on both sides: their mean
+    assert np.allclose(foot_on_shared_axis(Tt, [(1, -0.4), (1, -0.6)]), [1.0, 2.0, 0.0])
+    # neither side with a ground: the lower base
+    assert np.allclose(foot_on_shared_axis(Tt, [(0, -0.2), (0, -0.45)]), [1.0, 2.0, 0.05])
+
+
+def test_foot_from_feet_averages_the_best_kind_only():
+    a, b = np.array([0.0, 0.0, 0.0]), np.array([0.0, 0.0, 0.2])
+    assert np.allclose(foot_from_feet([(2, a), (1, b)]), a)
+    assert np.allclose(foot_from_feet([(1, a), (1, b)]), [0.0, 0.0, 0.1])
+
+
+def test_two_side_ground_fits_the_plane_both_sides_see():
+    g = np.arange(-0.7, 0.7, 0.01)
+    x, y = np.meshgrid(g, g)
+    pts = np.column_stack([x.ravel(), y.ravel(), np.zeros(x.size)])
+    pts = pts[np.hypot(pts[:, 0], pts[:, 1]) > 0.08]  # the trunk's own footprint unseen
+    # each side sees its half of the disk
+    clouds = {"front": SlabIndex(pts[pts[:, 1] < 0]), "back": SlabIndex(pts[pts[:, 1] >= 0])}
+    Tt = np.eye(4)
+    Tt[:3, 3] = [0.0, 0.0, 0.3]  # the shared trunk's frame at the diameter height, z up its axis
+    fit = two_side_ground(clouds, Tt, np.array([0.0, 0.0, 0.02]), 0.05, GroundParams(), np.random.default_rng(0))
+    assert fit is not None
+    assert abs(fit.point[2]) < 0.005
+    assert abs(abs(np.asarray(fit.normal)[2]) - 1.0) < 1e-3
+    assert two_side_ground({}, Tt, np.zeros(3), 0.05, GroundParams(), np.random.default_rng(0)) is None
