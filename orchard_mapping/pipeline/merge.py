@@ -14,12 +14,7 @@ from orchard_mapping.core.alignment import AlignmentSide, SideAlignment, align_s
 from orchard_mapping.core.geometry import SlabIndex, move_with_keyframes
 from orchard_mapping.core.merge import HeightPrior, InitialTransform, SemanticPair, initial_transform
 from orchard_mapping.core.posts import post_shapes
-from orchard_mapping.core.semantic_ba import (
-    HeightAnchor,
-    SemanticBAResult,
-    SideShapes,
-    semantic_bundle_adjust,
-)
+from orchard_mapping.core.semantic_ba import HeightAnchor, SemanticBAResult, SideShapes, semantic_bundle_adjust
 from orchard_mapping.core.sidemap import SideMap
 from orchard_mapping.core.trees import (
     foot_from_feet,
@@ -30,13 +25,9 @@ from orchard_mapping.core.trees import (
     trunk_shapes,
     two_side_ground,
 )
-from orchard_mapping.core.trunks import (
-    TrunkLandmark,
-)
+from orchard_mapping.core.trunks import TrunkLandmark
 from orchard_mapping.errors import AlignmentError
-from orchard_mapping.io.results import (
-    ResultTree,
-)
+from orchard_mapping.io.results import ResultTree
 from orchard_mapping.pipeline.trunks import DETECTOR_UNAVAILABLE, BandPair, TrunkWorker, two_side_diameter
 
 log = logging.getLogger(__name__)

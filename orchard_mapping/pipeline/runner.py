@@ -16,11 +16,7 @@ import numpy as np
 from orchard_mapping.config import OrchardConfig, dump_yaml
 from orchard_mapping.core.sidemap import SideMap
 from orchard_mapping.errors import AlignmentError, MergeRefusedError
-from orchard_mapping.io.results import (
-    atomic_write_text,
-    write_timings,
-    write_trees,
-)
+from orchard_mapping.io.results import atomic_write_text, write_timings, write_trees
 from orchard_mapping.pipeline.merge import merge_to_trees
 from orchard_mapping.pipeline.outputs import MERGE_OUTPUTS, write_landmarks, write_merge, write_side
 from orchard_mapping.pipeline.side import PendingSide, reconstruct_drive, reconstruct_side_later

@@ -16,12 +16,7 @@ from orchard_mapping.config import OrchardConfig
 from orchard_mapping.core.cylinder import CylinderError, fit_cylinders_shared_radius
 from orchard_mapping.core.posts import build_post_landmarks, fit_post_view, separate_trunks_from_posts
 from orchard_mapping.core.sidemap import SideMap
-from orchard_mapping.core.trunks import (
-    TrunkLandmark,
-    TrunkParams,
-    TrunkView,
-    build_trunk_landmarks,
-)
+from orchard_mapping.core.trunks import TrunkLandmark, TrunkParams, TrunkView, build_trunk_landmarks
 from orchard_mapping.core.types import CameraIntrinsics, ImagePatch
 from orchard_mapping.pipeline.sides import Timings
 

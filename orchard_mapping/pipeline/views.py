@@ -23,9 +23,7 @@ from orchard_mapping.core.geometric_trunks import (
     mask_place,
     on_tree_column,
 )
-from orchard_mapping.core.trunks import (
-    TrunkView,
-)
+from orchard_mapping.core.trunks import TrunkView
 from orchard_mapping.core.types import CameraIntrinsics, ImagePatch, RGBDFrame, mask_bounds
 from orchard_mapping.pipeline.sides import KeyframeImages
 from orchard_mapping.pipeline.trunks import Detect, PostView, trunk_detector
