@@ -1,9 +1,9 @@
-"""The offline pipeline: bags in, result folder out (docs/results.md). One public `run()`.
+"""The offline pipeline: bags in, result folder out (docs/results.md). `run()` is the whole job; the names
+below are the stages the live nodes (orchard_mapping.ros) and the tests call one by one.
 
-Reads as the paper's steps, per side: front end (RGB-D odometry with
-keyframes), loop detection, pose graph, bundle adjustment, TSDF fusion, trunk
-detection with trunk cylinders and local grounds; then writes each side's
-trajectory, cloud, trunks and grounds.
+Reads as the paper's steps, per side: front end (RGB-D odometry with keyframes), loop detection, pose graph,
+bundle adjustment, TSDF fusion, trunk detection (and trunks from geometry) with trunk cylinders and local
+grounds; then the merge of the two sides and the trees; then the result folder.
 
 One module per stage, each importing only those above it in this list:
 sides (the bags opened, a side's frames and keyframe images, the run's timings) -> trunks (trunk and post
