@@ -22,6 +22,7 @@ from __future__ import annotations
 import argparse
 import json
 import sys
+import tempfile
 import time
 from pathlib import Path
 
@@ -78,7 +79,7 @@ def main() -> None:
     ap.add_argument("--rows", nargs="+", default=["standard:10:0", "handheld_walk:10:3"],
                     help="SCENARIO:TREES:SEED")
     ap.add_argument("--variant", action="append", default=None, help="NAME[:KEY=VALUE,...]")
-    ap.add_argument("--workdir", type=Path, default=Path("/tmp/front_end_scale"))
+    ap.add_argument("--workdir", type=Path, default=Path(tempfile.gettempdir()) / "front_end_scale")
     ap.add_argument("--json", type=Path)
     args = ap.parse_args()
     variants = [parse_variant(v) for v in (args.variant or ["base", "rough0:depth_rough_drop_fraction=0"])]

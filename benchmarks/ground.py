@@ -39,6 +39,7 @@ import argparse
 import json
 import pickle
 import sys
+import tempfile
 from dataclasses import replace
 from pathlib import Path
 from typing import Any, Callable
@@ -179,7 +180,7 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--trees", type=int, default=10)
     ap.add_argument("--rate", type=float, default=15.0)
     ap.add_argument("--draws", type=int, default=3, help="RANSAC seeds per recorded candidate set")
-    ap.add_argument("--workdir", type=Path, default=Path("/tmp/ground_bench"))
+    ap.add_argument("--workdir", type=Path, default=Path(tempfile.gettempdir()) / "ground_bench")
     ap.add_argument("--reuse", action="store_true")
     ap.add_argument("--json", type=Path)
     args = ap.parse_args(argv)

@@ -16,6 +16,7 @@ from __future__ import annotations
 import argparse
 import json
 import sys
+import tempfile
 from pathlib import Path
 from typing import Any
 
@@ -66,7 +67,7 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--seed", type=int, default=0)
     ap.add_argument("--trees", type=int, default=10)
     ap.add_argument("--rate", type=float, default=15.0)
-    ap.add_argument("--workdir", type=Path, default=Path("/tmp/ground_truth_sensitivity"))
+    ap.add_argument("--workdir", type=Path, default=Path(tempfile.gettempdir()) / "ground_truth_sensitivity")
     ap.add_argument("--json", type=Path)
     args = ap.parse_args(argv)
 

@@ -22,6 +22,7 @@ import json
 import os
 import subprocess
 import sys
+import tempfile
 import time
 from pathlib import Path
 
@@ -79,7 +80,7 @@ def main() -> None:
     ap.add_argument("--trees", type=int, default=2)
     ap.add_argument("--rates", type=float, nargs="+", default=[1.0, 2.0])
     ap.add_argument("--seed", type=int, default=0)
-    ap.add_argument("--workdir", type=Path, default=Path("/tmp/live_bench"))
+    ap.add_argument("--workdir", type=Path, default=Path(tempfile.gettempdir()) / "live_bench")
     ap.add_argument("--sim", type=Path, help="reuse a simulated row (folder with front/, back/)")
     ap.add_argument("--masks", action="store_true")
     ap.add_argument("--json", type=Path)

@@ -29,6 +29,7 @@ import json
 import os
 import pickle
 import sys
+import tempfile
 import time
 from pathlib import Path
 from typing import Any
@@ -78,7 +79,7 @@ def add_case_arguments(ap: argparse.ArgumentParser) -> None:
     ap.add_argument("--trees", type=int, default=10)
     ap.add_argument("--rate", type=float, default=15.0)
     ap.add_argument("--seed", type=int, default=0)
-    ap.add_argument("--workdir", type=Path, default=Path("/tmp/merge_bench"))
+    ap.add_argument("--workdir", type=Path, default=Path(tempfile.gettempdir()) / "merge_bench")
     ap.add_argument("--reuse", action="store_true",
                     help="skip simulating (and reconstructing: sides.pkl) when the case folder holds them")
     ap.add_argument("--json", type=Path)

@@ -21,7 +21,7 @@ With --set KEY=VALUE (repeatable, as `orchard-map run --set`) the run with trunk
 e.g. `--set trunks.flip_test=true --set trunks.detect_every_m=0.3`; its results go to `result_<--tag>`.
 
     python benchmarks/trunks.py [--scenarios standard slope_weeds] [--trees 10] [--rate 15]
-        [--workdir /tmp/trunks_bench] [--reuse] [--source masks|model] [--cost --repeat 2] [--json out.json]
+        [--workdir DIR (default: the system temporary folder/trunks_bench)] [--reuse] [--source masks|model] [--cost --repeat 2] [--json out.json]
         [--set KEY=VALUE ...] [--tag NAME]
 """
 
@@ -32,6 +32,7 @@ import json
 import statistics
 import subprocess
 import sys
+import tempfile
 import time
 from collections.abc import Sequence
 from pathlib import Path
@@ -128,7 +129,7 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--trees", type=int, default=10)
     ap.add_argument("--rate", type=float, default=15.0)
     ap.add_argument("--seed", type=int, default=0)
-    ap.add_argument("--workdir", type=Path, default=Path("/tmp/trunks_bench"))
+    ap.add_argument("--workdir", type=Path, default=Path(tempfile.gettempdir()) / "trunks_bench")
     ap.add_argument("--reuse", action="store_true")
     ap.add_argument("--source", choices=("masks", "model"), default="masks")
     ap.add_argument("--cost", action="store_true", help="standard: time the run with and without trunks")

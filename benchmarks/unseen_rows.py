@@ -9,7 +9,7 @@ the path; the merge's outcome (exit code, rotation / translation error, merged m
 
 Usage:
   python benchmarks/unseen_rows.py [--rows 2] [--trees 6] [--seed 0] [--rate 10] [--motions standard handheld_walk]
-        [--workdir /tmp/unseen_rows] [--reuse] [--json benchmarks/results/unseen_rows.json] [--set key=value ...]
+        [--workdir DIR (default: the system temporary folder/unseen_rows)] [--reuse] [--json benchmarks/results/unseen_rows.json] [--set key=value ...]
 
 Row k uses seed (seed + k) and motion motions[k % len(motions)] (default: row 0 steady, row 1 hand-held).
 """
@@ -21,6 +21,7 @@ import json
 import os
 import subprocess
 import sys
+import tempfile
 import time
 from pathlib import Path
 from typing import Any
@@ -143,7 +144,7 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--seed", type=int, default=0)
     ap.add_argument("--rate", type=float, default=10.0)
     ap.add_argument("--motions", nargs="+", default=["standard", "handheld_walk"])
-    ap.add_argument("--workdir", default="/tmp/unseen_rows")
+    ap.add_argument("--workdir", default=str(Path(tempfile.gettempdir()) / "unseen_rows"))
     ap.add_argument("--reuse", action="store_true", help="reuse generated rows and results in --workdir")
     ap.add_argument("--json", default=None, help="results JSON (default benchmarks/results/unseen_rows_<...>.json)")
     ap.add_argument("--set", action="append", default=[], help="config override passed to orchard-map run")
