@@ -39,6 +39,8 @@ from scipy import ndimage
 
 from orchard_mapping.core.alignment import AlignmentParams, canonical_frame
 from orchard_mapping.core.detection import CLASS_TRUNK, Detection
+from orchard_mapping.core.geometry import transform_points
+from orchard_mapping.core.odometry import backproject
 from orchard_mapping.core.types import CameraIntrinsics
 from orchard_mapping.errors import AlignmentError
 
@@ -333,8 +335,7 @@ def cylinder_mask(cand: TrunkCandidate, depth: np.ndarray, T_odom_cam: np.ndarra
     if len(vv) == 0:
         return None
     zz = sub[vv, uu].astype(float)
-    pc = np.stack([(uu + c0 - intr.cx) / intr.fx * zz, (vv + r0 - intr.cy) / intr.fy * zz, zz], axis=1)
-    po = pc @ T_odom_cam[:3, :3].T + T_odom_cam[:3, 3]  # (M, 3) odom
+    po = transform_points(T_odom_cam, backproject(np.stack([uu + c0, vv + r0], axis=1), zz, intr))  # (M, 3) odom
     rel = po - bottom
     along_axis = rel @ up  # m above the mask's bottom
     radial = np.linalg.norm(rel - np.outer(along_axis, up), axis=1)
@@ -401,8 +402,7 @@ def mask_place(mask: np.ndarray, depth: np.ndarray, T_odom_cam: np.ndarray, intr
     if len(rows) == 0:
         return None
     z = np.asarray(depth)[rows, cols].astype(float)
-    pc = np.stack([(cols - intr.cx) / intr.fx * z, (rows - intr.cy) / intr.fy * z, z], axis=1)
-    return np.median(pc @ T_odom_cam[:3, :3].T + T_odom_cam[:3, 3], axis=0)
+    return np.median(transform_points(T_odom_cam, backproject(np.stack([cols, rows], axis=1), z, intr)), axis=0)
 
 
 def detection_places(views: list, intr: CameraIntrinsics) -> np.ndarray:

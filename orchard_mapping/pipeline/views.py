@@ -163,9 +163,9 @@ def add_column_views(views: TrunkViews, points: np.ndarray, poses: np.ndarray, s
     views.views[:] = [v for v in (replace(v, detections=[d for d in v.detections if not on_tree_column(
         mask_place(d.mask, v.depth, v.T_odom_cam, intr), candidates, post_like=True)]) for v in views.views)
         if v.detections]
-    if sum(len(v.detections) for v in views.views) < n_trunk:
-        log.info("%d trunk detections lie on columns shaped as posts (straight, untapered, bare): not trunks",
-                 n_trunk - sum(len(v.detections) for v in views.views))
+    dropped = n_trunk - sum(len(v.detections) for v in views.views)
+    if dropped:
+        log.info("%d trunk detections lie on columns shaped as posts (straight, untapered, bare): not trunks", dropped)
     todo = columns_to_model(candidates, detection_places(views.views, intr), tp.min_observations,
                             tp.associate_radius_m, only=tp.geometric == "only")
     if not todo:
