@@ -18,9 +18,10 @@ from dataclasses import dataclass, field
 import numpy as np
 from scipy.spatial.transform import Rotation
 
-__all__ = ["UTurnSides"]
+__all__ = ["SIDE_END", "SideSplitter", "UTurnSides"]
 
 OTHER = {"front": "back", "back": "front"}
+SIDE_END = "end"  # the side topic's word for "the recording is over"
 
 
 @dataclass
@@ -60,3 +61,50 @@ class UTurnSides:
         self._ref = None
         self.side = OTHER[self.side]
         return True
+
+
+class SideSplitter:
+    """Which side each frame of a stream belongs to, and where a side ends: the rule of input.side_source
+    for one stream of frames, side-topic labels and tracked poses, fed in order. The live odometry node
+    feeds it message by message; `orchard-map run` feeds it a drive's frames (pipeline.side).
+
+    source "topic": the side topic's labels ("front", "back"; "end" ends the side); "trajectory": the
+    camera's U-turn (UTurnSides) and labels other than "end" are ignored; "auto": the labels where a side is
+    named (by the topic or by `default_side`, the node's `side` parameter), the U-turn where none is.
+    """
+
+    def __init__(self, source: str = "auto", default_side: str = "") -> None:
+        if source not in ("auto", "topic", "trajectory"):
+            raise ValueError(f"source must be auto, topic or trajectory, got {source!r}")
+        if default_side not in ("", *OTHER):
+            raise ValueError(f"default_side must be '', front or back, got {default_side!r}")
+        self.source = source
+        self.default_side = default_side
+        self._label = ""  # the side the topic named last ("" none, or after "end")
+        self._turns: UTurnSides | None = None  # the U-turn rule, once it tells the side
+
+    def on_label(self, label: str) -> bool:
+        """A side-topic message: True if the side being tracked ends here (the caller finishes it; the
+        next frame starts the side `side()` then names)."""
+        if label != SIDE_END and label not in OTHER:
+            raise ValueError(f"side label must be front, back or {SIDE_END}, got {label!r}")
+        if self.source == "trajectory" and label != SIDE_END:
+            return False
+        ends = label != self._label or self._turns is not None
+        self._label = "" if label == SIDE_END else label
+        self._turns = None
+        return ends
+
+    def side(self) -> str:
+        """The side of the next frame ("" while nothing names one: source "topic" with no label and no
+        default side)."""
+        if self._turns is not None or self.source == "trajectory" or (
+                self.source == "auto" and not (self._label or self.default_side)):
+            self._turns = self._turns or UTurnSides()
+            return self._turns.side
+        return self._label or self.default_side
+
+    def after_pose(self, T_odom_cam: np.ndarray) -> bool:
+        """The frame just given `side()` was placed at T_odom_cam (4, 4) in its side's odom frame: True if
+        its side ends with it (half way round the U-turn; only where the U-turn tells the side)."""
+        return self._turns is not None and self._turns.update(T_odom_cam)

@@ -50,6 +50,7 @@ from orchard_mapping.errors import (
     EmptyBagError,
     MissingTopicError,
 )
+from orchard_mapping.io.pairing import pair_stamps
 from orchard_mapping.io.typesys import typestore
 
 __all__ = [
@@ -585,19 +586,6 @@ def decode_frame(color_msg: Any, depth_msg: Any | None, intr: CameraIntrinsics, 
                      depth=depth, intrinsics=intr, side=side, index=index)
 
 
-def _pair(color_ns: np.ndarray, depth_ns: np.ndarray, max_dt_ns: int) -> np.ndarray:
-    """For each colour stamp, the index into `depth_ns` of the nearest depth stamp within max_dt_ns, else -1."""
-    if depth_ns.size == 0:
-        return np.full(color_ns.shape, -1, dtype=np.int64)
-    order = np.argsort(depth_ns, kind="stable")
-    d = depth_ns[order]  # (M,) sorted
-    j = np.clip(np.searchsorted(d, color_ns), 1, d.size - 1) if d.size > 1 else np.zeros(color_ns.shape, np.int64)
-    left = np.maximum(j - 1, 0)
-    pick = np.where(np.abs(color_ns - d[left]) <= np.abs(d[j] - color_ns), left, j)  # (N,)
-    ok = np.abs(d[pick] - color_ns) <= max_dt_ns
-    return np.where(ok, order[pick], -1)
-
-
 def read_rgbd(
     path: str | os.PathLike[str],
     topics: TopicsConfig = TopicsConfig(),  # noqa: B008 (frozen model, safe to share)
@@ -620,7 +608,7 @@ def read_rgbd(
     differs from the colour images).
 
     Colour images are paired with the depth image nearest in header stamp
-    within `max_pair_dt_s`; unpaired colour images are dropped (one warning
+    within `max_pair_dt_s` (io.pairing, the rule the live node follows); unpaired colour images are dropped (one warning
     with the count). Depth outside [depth_min_m, depth_max_m] becomes 0. Side
     labels come from `topics.side` (std_msgs/String, latest at or before each
     frame's stamp, by log time); "" when the topic is absent.
@@ -733,7 +721,7 @@ def read_rgbd(
     color_index = np.argsort(c_ns, kind="stable")  # (Nc,)
     c_sorted = c_ns[color_index]
     if mode == "rgbd":
-        depth_index = _pair(c_sorted, np.asarray(depth_ns, dtype=np.int64), round(max_pair_dt_s * 1e9))
+        depth_index = pair_stamps(c_sorted, np.asarray(depth_ns, dtype=np.int64), round(max_pair_dt_s * 1e9))
         keep = depth_index >= 0
         dropped = int(np.sum(~keep))
         if dropped:

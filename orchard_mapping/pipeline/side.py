@@ -16,7 +16,7 @@ from orchard_mapping.config import OrchardConfig
 from orchard_mapping.core.bundle_adjustment import BAResult, bundle_adjust_windowed, optimise_pose_graph
 from orchard_mapping.core.odometry import RGBDFrontEnd
 from orchard_mapping.core.sidemap import FrontEndResult, LoopClosure, SideMap
-from orchard_mapping.core.sides import UTurnSides
+from orchard_mapping.core.sides import SideSplitter
 from orchard_mapping.core.types import CameraIntrinsics, RGBDFrame
 from orchard_mapping.errors import BagFormatError
 from orchard_mapping.io.bags import RGBDSequence
@@ -257,21 +257,23 @@ def reconstruct_side_later(seq: RGBDSequence, side: str, cfg: OrchardConfig, tim
 def reconstruct_drive(seq: RGBDSequence, cfg: OrchardConfig, timings: Timings,
                       progress: Progress | None = None, worker: "TrunkWorker | None" = None) -> dict[str, SideMap]:
     """One continuous drive round a row without side labels: each frame tracked by its side's `SideSession`,
-    the side changing half way round the U-turn (core.sides.UTurnSides), as the live odometry node does."""
-    turns = UTurnSides()
+    the side changing half way round the U-turn: core.sides.SideSplitter, the rule the live odometry node
+    follows (the bag has no side labels, or input.side_source says the trajectory tells the side)."""
+    turns = SideSplitter(cfg.input.side_source)
     sessions: dict[str, SideSession] = {}
     session: SideSession | None = None
     seconds: dict[str, float] = {}
     for i, frame in enumerate(seq):
         if session is None:
-            if turns.side in sessions:
-                raise BagFormatError(f"the drive turns back to the {turns.side} side at frame {i} ({frame.stamp:.3f} s): "
+            side = turns.side()
+            if side in sessions:
+                raise BagFormatError(f"the drive turns back to the {side} side at frame {i} ({frame.stamp:.3f} s): "
                                      "one bag holds one drive round one row (front, U-turn, back)", bag=seq.bag)
-            session = sessions[turns.side] = SideSession(turns.side, seq.intrinsics, cfg,
-                                                         BagKeyframeImages(seq, turns.side, False), bag=seq.bag)
+            session = sessions[side] = SideSession(side, seq.intrinsics, cfg, BagKeyframeImages(seq, side, False),
+                                                   bag=seq.bag)
             t0 = time.perf_counter()
         pose, _ = session.add(frame)
-        if turns.update(pose):
+        if turns.after_pose(pose):
             seconds[session.side] = time.perf_counter() - t0
             session = None
         if progress:

@@ -36,6 +36,7 @@ from rclpy.utilities import remove_ros_args
 from std_msgs.msg import String
 
 from orchard_mapping.config import TopicsConfig
+from orchard_mapping.core.sides import SIDE_END
 from orchard_mapping.errors import BagError, OrchardMappingError
 from orchard_mapping.io.bags import describe_bag, iter_raw
 from orchard_mapping.io.results import atomic_write_text
@@ -43,7 +44,6 @@ from orchard_mapping.ros.qos import LATCHED, REPLAY
 
 __all__ = ["SIDE_END", "STATUS_TOPIC", "BagPlayer", "main", "message_class"]
 
-SIDE_END = "end"  # published on the side topic after each bag: the recording of a side is over
 # s: a side change is published this long after the last message before it and before the first after it,
 # so a subscriber has taken every image of one side before it hears of the next (the side and the images
 # travel on different topics, and an executor may take them in either order)

@@ -48,16 +48,17 @@ from std_msgs.msg import String
 
 from orchard_mapping.core.geometry import matrix_to_quat
 from orchard_mapping.core.sidemap import SideMap
-from orchard_mapping.core.sides import UTurnSides
+from orchard_mapping.core.sides import SIDE_END, SideSplitter
 from orchard_mapping.errors import OrchardMappingError
 from orchard_mapping.io.bags import camera_intrinsics, decode_frame, header_ns
+from orchard_mapping.io.pairing import Marker, Paired, RGBDPairer
 from orchard_mapping.io.sidemap_codec import SIDE_MAP_ENCODING, encode_side_map
 from orchard_mapping.pipeline import SIDES, SideSession, SpooledKeyframeImages, Timings
 from orchard_mapping.ros.clouds import cloud_to_msg
 from orchard_mapping.ros.finisher import SideFinishError, finish_in_child
 from orchard_mapping.ros.messages import TrunkRecord, ground_records, grounds_to_msg, stamp_header, trunks_to_msg
 from orchard_mapping.ros.params import ConfigParameters
-from orchard_mapping.ros.player import SIDE_END, STATUS_TOPIC as PLAYER_STATUS
+from orchard_mapping.ros.player import STATUS_TOPIC as PLAYER_STATUS
 from orchard_mapping.ros.qos import CAMERA, CAMERA_REPLAYED, LATCHED
 from orchard_mapping.ros.remote_detector import RemoteDetector
 from orchard_mapping.ros.spin import StopNode, run_node
@@ -113,10 +114,10 @@ class RGBDOdometryNode(Node):
         cfg = self.params.config
         topics = cfg.input.topics
         self.counts = _Counts()
-        self._colour: deque = deque()  # (stamp ns, Image) waiting for their depth partner; (None, side): a side change
+        # colour images waiting for their depth partner, side changes in their place (io.pairing: read_rgbd's rule)
+        self._pairer = RGBDPairer(round(cfg.input.max_pair_dt_s * 1e9))
         self._last_colour_ns: int | None = None
         self._steps: deque = deque(maxlen=30)  # ns between consecutive colour stamps
-        self._depth: deque = deque(maxlen=64)  # (stamp ns, Image), recent
         self._info: CameraInfo | None = None
         self._side: str = self.get_parameter("side").value or ""
         self._work: queue.Queue = queue.Queue()  # frames and side changes, in arrival order
@@ -191,7 +192,7 @@ class RGBDOdometryNode(Node):
         # message inside a bag (a drive's U-turn) is published with the frame before it, and under load that
         # frame's depth image (1.2 MB) came after it (the frame was dropped in 2 of 5 test runs on a loaded
         # machine when the side message flushed the pairing). The end of a recording flushes: no depth follows.
-        self._colour.append((None, side))
+        self._pairer.add_marker(side)
         self._pair(flush=side == SIDE_END)
 
     def _on_player(self, msg: String) -> None:
@@ -211,7 +212,7 @@ class RGBDOdometryNode(Node):
         self.counts.colour += 1
         ns = header_ns(msg.header)
         self._count_missed(ns)
-        self._colour.append((ns, msg))
+        self._pairer.add_colour(ns, msg)
         self._pair()
 
     def _count_missed(self, ns: int) -> None:
@@ -233,45 +234,33 @@ class RGBDOdometryNode(Node):
 
     def _on_depth(self, msg: Image) -> None:
         self.counts.depth += 1
-        self._depth.append((header_ns(msg.header), msg))
+        self._pairer.add_depth(header_ns(msg.header), msg)
         self._pair()
 
     def _pair(self, flush: bool = False) -> None:
-        """Give each colour image the depth image nearest in stamp within input.max_pair_dt_s (ties: the
-        earlier), as `read_rgbd` pairs a bag's; wait while a nearer depth may still come."""
-        tol = round(self.params.config.input.max_pair_dt_s * 1e9)
-        while self._colour:
-            c_ns, colour = self._colour[0]
-            if c_ns is None:  # a side change (_on_side), behind every colour image that came before it
-                self._colour.popleft()
-                self._work.put(("side", colour))
-                continue
-            if self._info is None and not flush:
-                return
-            near = [(abs(d_ns - c_ns), d_ns, d) for d_ns, d in self._depth if abs(d_ns - c_ns) <= tol]
-            later = any(d_ns >= c_ns + tol for d_ns, _ in self._depth)
-            if not (flush or later or any(dt == 0 for dt, _, _ in near)):
-                return
-            self._colour.popleft()
-            if not near:
+        """Hand on what the pairing can decide now (io.pairing, as `read_rgbd` pairs a bag's images); frames
+        wait for the first CameraInfo."""
+        for ev in self._pairer.pop(flush=flush, hold=self._info is None):
+            if isinstance(ev, Marker):
+                self._work.put(("side", ev.item))
+            elif isinstance(ev, Paired):
+                self.counts.paired += 1
+                self._work.put(("frame", (ev.colour, ev.depth, self._info)))
+            else:
                 self.counts.unpaired += 1
+                held = (f"{ev.depth_held_ns[0] / 1e9:.3f}-{ev.depth_held_ns[1] / 1e9:.3f} s" if ev.depth_held_ns
+                        else "none")
                 self.get_logger().warning(
-                    f"colour image at stamp {c_ns / 1e9:.3f} s: no depth image within {tol / 1e9:.3f} s "
-                    f"({'at the end of a recording' if flush else 'a later depth came first'}; depth stamps "
-                    f"held {self._depth[0][0] / 1e9 if self._depth else float('nan'):.3f}-"
-                    f"{self._depth[-1][0] / 1e9 if self._depth else float('nan'):.3f} s): frame dropped")
-                continue
-            _, _, depth = min(near, key=lambda x: (x[0], x[1]))
-            self.counts.paired += 1
-            self._work.put(("frame", (colour, depth, self._info)))
+                    f"colour image at stamp {ev.colour_ns / 1e9:.3f} s: no depth image within "
+                    f"{self._pairer.max_dt_ns / 1e9:.3f} s ({'at the end of a recording' if ev.flushed else 'a later depth came first'}; "
+                    f"depth stamps held {held}): frame dropped")
 
     # -- tracking (worker thread)
 
     def _track_loop(self) -> None:
         session: SideSession | None = None
-        side = ""
-        source = self.params.config.input.side_source
-        turns: UTurnSides | None = None  # the side from the camera's U-turn (input.side_source)
+        # the side of each frame and where a side ends: input.side_source's rule, as `orchard-map run` reads a drive
+        sides = SideSplitter(self.params.config.input.side_source, self._side)
         while True:
             kind, item = self._work.get()
             if kind == "stop":
@@ -280,18 +269,11 @@ class RGBDOdometryNode(Node):
                 self._finish.put(None)
                 return
             if kind == "side":
-                if source == "trajectory" and item != SIDE_END:
-                    continue  # the drive's U-turn tells the side; `end` still ends it
-                if (item != side or turns is not None) and session is not None:
+                if sides.on_label(item) and session is not None:
                     self._finish.put((session, time.monotonic()))
                     session = None
-                side = "" if item == SIDE_END else item
-                turns = None
                 continue
-            if turns is not None or source == "trajectory" or (source == "auto" and not (side or self._side)):
-                turns = turns or UTurnSides()
-                side = turns.side
-            side = side or self._side
+            side = sides.side()
             if not side:
                 self._error("a frame came before any side was named (side topic or the `side` parameter; "
                             "input.side_source: topic)")
@@ -313,7 +295,7 @@ class RGBDOdometryNode(Node):
                 continue
             self.counts.processed[side] = self.counts.processed.get(side, 0) + 1
             self._publish_pose(side, frame.stamp, pose, new)
-            if turns is not None and turns.update(pose):  # half way round the U-turn: the next side begins
+            if sides.after_pose(pose):  # half way round the U-turn: the next side begins
                 self.get_logger().info(f"{side} side ends at {frame.stamp:.3f} s: the camera turned round the row end")
                 self._finish.put((session, time.monotonic()))
                 session = None

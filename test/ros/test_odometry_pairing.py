@@ -14,8 +14,8 @@ rclpy = pytest.importorskip("rclpy")
 from sensor_msgs.msg import CameraInfo, Image  # noqa: E402
 from std_msgs.msg import String  # noqa: E402
 
+from orchard_mapping.core.sides import SIDE_END  # noqa: E402
 from orchard_mapping.ros.messages import stamp_header  # noqa: E402
-from orchard_mapping.ros.player import SIDE_END  # noqa: E402
 
 
 @pytest.fixture

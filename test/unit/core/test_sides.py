@@ -52,3 +52,44 @@ def test_the_side_changes_half_way_round_the_u_turn(turn_sign, tilt_deg, sway_de
     first_back = got.index("back")
     assert abs(first_back - truth.index("back")) <= 2, (first_back, truth.index("back"))
     assert got[-1] == "back"
+
+
+def _placed(poses):
+    """Each pose in its side's odom frame: a side's reconstruction starts at its first camera."""
+    return [np.linalg.inv(poses[0]) @ T for T in poses]
+
+
+def test_the_splitter_follows_the_u_turn_without_labels_and_ignores_labels_on_trajectory():
+    from orchard_mapping.core.sides import SideSplitter
+
+    poses, truth = _drive(1, 0, 0, np.random.default_rng(0))
+    for source in ("auto", "trajectory"):
+        split = SideSplitter(source)
+        if source == "trajectory":
+            assert split.on_label("back") is False  # labels do not tell the side on this source
+        got, origin, ends = [], poses[0], 0
+        for T in poses:
+            got.append(split.side())
+            if split.after_pose(np.linalg.inv(origin) @ T):
+                ends += 1
+                origin = None
+            if origin is None:
+                origin = T
+        assert ends == 1 and got[0] == "front" and got[-1] == "back"
+        assert abs(got.index("back") - truth.index("back")) <= 2
+
+
+def test_the_splitter_reads_labels_on_topic_and_a_label_change_ends_the_side():
+    from orchard_mapping.core.sides import SIDE_END, SideSplitter
+
+    split = SideSplitter("topic")
+    assert split.side() == ""  # nothing names the side yet
+    assert split.on_label("front") is True
+    assert split.side() == "front"
+    assert split.after_pose(np.eye(4)) is False  # poses never end a labelled side
+    assert split.on_label("front") is False  # the same side again: it goes on
+    assert split.on_label("back") is True and split.side() == "back"
+    assert split.on_label(SIDE_END) is True and split.side() == ""
+    assert SideSplitter("topic", default_side="back").side() == "back"
+    with pytest.raises(ValueError, match="side label"):
+        split.on_label("left")
