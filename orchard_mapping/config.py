@@ -14,7 +14,7 @@ from typing import Any, Literal
 import yaml
 from pydantic import BaseModel, ConfigDict, Field, ValidationError
 
-from orchard_mapping.core.alignment import AlignmentParams
+from orchard_mapping.core.alignment_types import AlignmentParams
 from orchard_mapping.core.bundle_adjustment import BundleAdjustmentParams
 from orchard_mapping.core.fusion import FusionParams
 from orchard_mapping.core.ground import GroundParams

@@ -37,7 +37,8 @@ import cv2
 import numpy as np
 from scipy import ndimage
 
-from orchard_mapping.core.alignment import AlignmentParams, canonical_frame
+from orchard_mapping.core.alignment_types import AlignmentParams
+from orchard_mapping.core.canonical_frame import canonical_frame
 from orchard_mapping.core.detection import CLASS_TRUNK, Detection
 from orchard_mapping.core.geometry import transform_points
 from orchard_mapping.core.odometry import backproject

@@ -8,14 +8,9 @@ import numpy as np
 import pytest
 from scipy.spatial.transform import Rotation
 
-from orchard_mapping.core.alignment import (
-    AlignmentParams,
-    AlignmentSide,
-    align_sides,
-    alpha_boundary,
-    cpd_rigid_2d,
-    pair_trunks,
-)
+from orchard_mapping.core.alignment import align_sides, pair_trunks
+from orchard_mapping.core.alignment_types import AlignmentParams, AlignmentSide
+from orchard_mapping.core.front_view import alpha_boundary, cpd_rigid_2d
 from orchard_mapping.core.geometry import make_transform, rotation_angle_deg
 from orchard_mapping.core.merge import HeightPrior, MergeParams, SemanticPair, initial_transform
 from orchard_mapping.errors import AlignmentError
@@ -47,7 +42,7 @@ def test_alpha_boundary_of_a_filled_square_lies_on_its_edges():
 def test_alpha_boundary_in_tiles_is_the_one_triangulation_s(seed):
     """The local computation (occupancy grid, tiles along x) gives exactly the vertices one Delaunay
     triangulation of all points gives, on a canopy-like front view with holes, gaps and stray points."""
-    from orchard_mapping.core.alignment import _alpha_boundary_indices
+    from orchard_mapping.core.front_view import alpha_boundary_indices
 
     rng = np.random.default_rng(seed)
     blobs = [c + rng.normal(0, rng.uniform(0.1, 0.5), (rng.integers(200, 800), 2))
@@ -55,14 +50,14 @@ def test_alpha_boundary_in_tiles_is_the_one_triangulation_s(seed):
     stray = rng.uniform([0, 0], [12, 3], (150, 2))
     xy = np.concatenate(blobs + [stray])
     xy = xy[np.hypot(xy[:, 0] % 1.5 - 0.75, xy[:, 1] - 1.2) > 0.2]  # holes a disc of alpha passes through
-    whole = xy[_alpha_boundary_indices(xy, 0.15)]
+    whole = xy[alpha_boundary_indices(xy, 0.15)]
     tiled = alpha_boundary(xy, 0.15, tile_points=300)
     assert len(whole) > 300
     np.testing.assert_array_equal(tiled, whole)
 
 
 def _shift_costs_reference(Bf, Bb, params):
-    """eq. dist per shift, one nearest-neighbour query per shift (what _shift_costs computes at once)."""
+    """eq. dist per shift, one nearest-neighbour query per shift (what shift_costs computes at once)."""
     from scipy.spatial import cKDTree
 
     shifts = np.arange(Bf[:, 0].min() - Bb[:, 0].max(), Bf[:, 0].max() - Bb[:, 0].min() + params.shift_step_m,
@@ -82,7 +77,7 @@ def _shift_costs_reference(Bf, Bb, params):
 
 @pytest.mark.parametrize("seed", [0, 1, 2])
 def test_shift_costs_at_once_equal_one_query_per_shift(seed):
-    from orchard_mapping.core.alignment import _shift_costs
+    from orchard_mapping.core.alignment import shift_costs
 
     rng = np.random.default_rng(seed)
     n, length = int(rng.integers(40, 400)), rng.uniform(5, 40)
@@ -90,7 +85,7 @@ def test_shift_costs_at_once_equal_one_query_per_shift(seed):
     Bb = Bf[rng.permutation(n)[: n - 20]] + [rng.uniform(-5, 5), 0.02] + rng.normal(0, 0.05, (n - 20, 2))
     params = AlignmentParams()
     s_ref, c_ref = _shift_costs_reference(Bf, Bb, params)
-    s, c = _shift_costs(Bf, Bb, params)
+    s, c = shift_costs(Bf, Bb, params)
     np.testing.assert_array_equal(s, s_ref)
     np.testing.assert_array_equal(np.isfinite(c), np.isfinite(c_ref))
     assert np.isfinite(c).sum() > 50
@@ -388,8 +383,8 @@ def test_the_side_ground_is_fitted_again_with_more_below_only_where_the_first_fi
     """One plane over a whole steep, undulating side may leave over 20 % of its ground below it (slope_weeds
     seed 2: no canonical ground, the merge refused); then, and only then, a plane with up to 40 % below is
     taken. Here the first fit is made to fail as there; the slope (18 deg) must come back either way."""
-    from orchard_mapping.core import alignment
-    from orchard_mapping.core.alignment import canonical_frame
+    from orchard_mapping.core import canonical_frame as canonical_frame_module
+    from orchard_mapping.core.canonical_frame import canonical_frame
     from orchard_mapping.core.ground import fit_local_ground
 
     pts, poses = _sloped_side(np.random.default_rng(3), 18.0)
@@ -403,7 +398,7 @@ def test_the_side_ground_is_fitted_again_with_more_below_only_where_the_first_fi
         calls.append((gp.max_below_fraction, out is not None))
         return out
 
-    monkeypatch.setattr(alignment, "fit_local_ground", fit)
+    monkeypatch.setattr(canonical_frame_module, "fit_local_ground", fit)
     cf = canonical_frame(pts, poses, "front", AlignmentParams(), np.random.default_rng(0))
     assert calls == ([(0.2, False), (0.4, True)] if first_fails else [(0.2, True)])
     up = cf.T_canon_odom[1, :3]  # the canonical frame's up: the slope's normal
