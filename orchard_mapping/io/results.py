@@ -16,8 +16,9 @@ import io
 import json
 import math
 import os
+import shutil
 import tempfile
-from collections.abc import Iterable, Mapping
+from collections.abc import Iterable, Iterator, Mapping
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
@@ -40,6 +41,7 @@ __all__ = [
     "Timings",
     "atomic_write_json",
     "atomic_write_text",
+    "staged_folder",
     "load_json",
     "read_side_merge",
     "read_timings",
@@ -145,6 +147,31 @@ def _dumps(obj: Any, path: Path) -> str:
         return json.dumps(to_jsonable(obj), indent=2, allow_nan=False) + "\n"
     except (TypeError, ValueError) as err:
         raise ResultFormatError(f"{path}: cannot serialise as JSON: {err}") from err
+
+
+@contextlib.contextmanager
+def staged_folder(out: str | Path) -> Iterator[Path]:
+    """A staging folder inside `out` to write a set of results into; its files move into `out` only when
+    the block ends without an error, so a failed or stopped run leaves no half-written set (earlier
+    results in `out` stay as they were, and folders this call created are removed again)."""
+    out = Path(out)
+    created = [d for d in (out, *out.parents) if not d.exists()]  # folders made here (deepest first)
+    out.mkdir(parents=True, exist_ok=True)
+    stage = Path(tempfile.mkdtemp(prefix=".staging-", dir=out))
+    try:
+        yield stage
+        for f in sorted(stage.iterdir()):
+            os.replace(f, out / f.name)
+    except BaseException:
+        shutil.rmtree(stage, ignore_errors=True)
+        for d in created:  # rmdir: only while empty
+            try:
+                d.rmdir()
+            except OSError:
+                break
+        raise
+    finally:
+        shutil.rmtree(stage, ignore_errors=True)
 
 
 def atomic_write_json(path: str | Path, obj: Any) -> Path:

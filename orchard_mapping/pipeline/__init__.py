@@ -12,7 +12,15 @@ fusion) -> side (one side: front end, back end, fusion, its trunks) -> merge (th
 -> outputs (the result folder's files) -> runner (`run`).
 """
 
-from orchard_mapping.pipeline.merge import MergeOutcome, map_poses, merge_sides, merge_to_trees, two_side_trees
+from orchard_mapping.pipeline.merge import (
+    MergeOutcome,
+    map_poses,
+    merge_sides,
+    merge_to_trees,
+    ray_in_map,
+    tree_of_trunk,
+    two_side_trees,
+)
 from orchard_mapping.pipeline.outputs import write_merge
 from orchard_mapping.pipeline.runner import RunResult, run
 from orchard_mapping.pipeline.side import SideHandover, SideSession, finish_side, front_end, reconstruct_side
@@ -46,6 +54,8 @@ __all__ = [
     "fit_posts",
     "front_end",
     "map_poses",
+    "ray_in_map",
+    "tree_of_trunk",
     "merge_sides",
     "merge_to_trees",
     "model_trunks",

@@ -129,6 +129,21 @@ def clouds_in_map(m: MergeOutcome, sides: dict[str, SideMap]) -> dict[str, np.nd
             for side, P in map_poses(m, sides).items()}
 
 
+def ray_in_map(point: np.ndarray, direction: np.ndarray, sm: SideMap, poses_map: np.ndarray
+               ) -> tuple[np.ndarray, np.ndarray]:
+    """A landmark's point (3,) and unit direction (3,) in its side's odom frame (a trunk's base and axis, a
+    local ground's point and normal) carried into map as its cloud is (clouds_in_map): with the keyframe
+    nearest the point. poses_map: map_poses(m, sides)[side]."""
+    p = np.asarray(point, float)
+    base, tip = move_with_keyframes(np.array([p, p + np.asarray(direction, float)]), sm.keyframe_poses, poses_map)
+    return base, (tip - base) / np.linalg.norm(tip - base)
+
+
+def tree_of_trunk(trees: list[ResultTree]) -> dict[tuple[str, int], int]:
+    """(side, trunk id) -> the id of the tree that trunk belongs to after the merge."""
+    return {(side, own["trunk_id"]): t.id for t in trees for side, own in (t.per_side or {}).items()}
+
+
 def two_side_trees(m: MergeOutcome, sides: dict[str, SideMap], cfg: OrchardConfig,
                    clouds: dict[str, np.ndarray] | None = None, worker: "TrunkWorker | None" = None
                    ) -> list[ResultTree]:

@@ -4,9 +4,6 @@ result."""
 from __future__ import annotations
 
 import logging
-import os
-import shutil
-import tempfile
 import time
 from dataclasses import dataclass
 from pathlib import Path
@@ -16,7 +13,7 @@ import numpy as np
 from orchard_mapping.config import OrchardConfig, dump_yaml
 from orchard_mapping.core.sidemap import SideMap
 from orchard_mapping.errors import AlignmentError, MergeRefusedError
-from orchard_mapping.io.results import atomic_write_text, write_timings, write_trees
+from orchard_mapping.io.results import atomic_write_text, staged_folder, write_timings, write_trees
 from orchard_mapping.pipeline.merge import merge_to_trees
 from orchard_mapping.pipeline.outputs import MERGE_OUTPUTS, write_landmarks, write_merge, write_side
 from orchard_mapping.pipeline.side import PendingSide, reconstruct_drive, reconstruct_side_later
@@ -47,23 +44,8 @@ def run(front: str | Path, back: str | Path | None, out: str | Path, cfg: Orchar
     succeeded: a failed run leaves no half-written result (earlier results in `out` stay as they were).
     """
     out = Path(out)
-    created = [d for d in (out, *out.parents) if not d.exists()]  # folders this run makes (deepest first)
-    out.mkdir(parents=True, exist_ok=True)
-    stage = Path(tempfile.mkdtemp(prefix=".staging-", dir=out))
-    try:
+    with staged_folder(out) as stage:
         result = _run(Path(front), Path(back) if back is not None else None, stage, cfg, progress, trunk_worker)
-        for f in sorted(stage.iterdir()):
-            os.replace(f, out / f.name)
-    except BaseException:
-        shutil.rmtree(stage, ignore_errors=True)
-        for d in created:  # a failed run leaves no folder it created itself (rmdir: only if still empty)
-            try:
-                d.rmdir()
-            except OSError:
-                break
-        raise
-    finally:
-        shutil.rmtree(stage, ignore_errors=True)
     if result.merge_refused is not None:
         # The sides' own results are complete and stay; the merge is not guessed (exit code 2), and
         # an earlier run's merge outputs in `out` would now contradict them.

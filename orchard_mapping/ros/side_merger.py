@@ -26,10 +26,7 @@ graph as `orchard-map run` stops with 2; otherwise the node waits for the next m
 from __future__ import annotations
 
 import json
-import os
-import shutil
 import sys
-import tempfile
 import time
 from pathlib import Path
 
@@ -45,11 +42,19 @@ from rclpy.node import Node
 from sensor_msgs.msg import PointCloud2
 from std_msgs.msg import String
 
-from orchard_mapping.core.geometry import matrix_to_quat, move_with_keyframes
+from orchard_mapping.core.geometry import matrix_to_quat
 from orchard_mapping.core.sidemap import SideMap
 from orchard_mapping.errors import AlignmentError
+from orchard_mapping.io.results import staged_folder
 from orchard_mapping.io.sidemap_codec import SIDE_MAP_ENCODING, SideMapFormatError, decode_side_map
-from orchard_mapping.pipeline import MergeOutcome, map_poses, merge_to_trees, write_merge
+from orchard_mapping.pipeline import (
+    MergeOutcome,
+    map_poses,
+    merge_to_trees,
+    ray_in_map,
+    tree_of_trunk,
+    write_merge,
+)
 from orchard_mapping.ros.clouds import cloud_to_msg
 from orchard_mapping.ros.graph import MERGED_TREES_TOPIC, side_map_topic
 from orchard_mapping.ros.messages import (
@@ -68,11 +73,6 @@ from orchard_mapping.ros.tf import StaticTransforms, transform_msg
 __all__ = ["MERGED_TREES_TOPIC", "SideMergerNode", "main", "side_map_topic"]
 
 MAP_FRAME = "map"
-
-
-def _in_map(points: np.ndarray, sm: SideMap, poses_map: np.ndarray) -> np.ndarray:
-    """(N, 3) points of a side's odom frame carried into map with their nearest keyframe."""
-    return move_with_keyframes(np.asarray(points, float).reshape(-1, 3), sm.keyframe_poses, poses_map)
 
 
 class SideMergerNode(Node):
@@ -151,15 +151,9 @@ class SideMergerNode(Node):
 
     def _write(self, out: Path, merged: MergeOutcome, clouds: dict[str, np.ndarray]) -> None:
         """The merge's files into `out`, each moved in only once all were written (a stop meanwhile leaves
-        the earlier set whole)."""
-        out.mkdir(parents=True, exist_ok=True)
-        stage = Path(tempfile.mkdtemp(prefix=".staging-", dir=out))
-        try:
+        the earlier set whole), as `orchard-map run` writes its result folder."""
+        with staged_folder(out) as stage:
             write_merge(stage, merged, self.maps, clouds)
-            for f in sorted(stage.iterdir()):
-                os.replace(f, out / f.name)
-        finally:
-            shutil.rmtree(stage, ignore_errors=True)
 
     def _publish(self, merged: MergeOutcome, clouds: dict[str, np.ndarray], trees: list) -> None:
         front, back = self.maps["front"], self.maps["back"]
@@ -192,19 +186,17 @@ class SideMergerNode(Node):
         self._pubs["cloud"].publish(cloud_to_msg(np.concatenate([clouds["front"], clouds["back"]]),
                                                  np.concatenate([front.cloud_colors, back.cloud_colors]),
                                                  MAP_FRAME, stamp))
-        tree_of = {(side, own["trunk_id"]): t.id for t in trees for side, own in (t.per_side or {}).items()}
+        tree_of = tree_of_trunk(trees)
         poses = map_poses(merged, self.maps)
         trunks, grounds = [], []
         for side, sm in self.maps.items():
             for lm in sm.trunks:
                 rec = TrunkRecord.from_landmark(lm, side)
-                base, tip = _in_map(np.array([lm.base, lm.base + lm.axis]), sm, poses[side])
-                axis = (tip - base) / np.linalg.norm(tip - base)
+                base, axis = ray_in_map(lm.base, lm.axis, sm, poses[side])
                 trunks.append(TrunkRecord(tree_of.get((side, lm.id), -1), side, tuple(base), tuple(axis), rec.radius,
                                           rec.length, rec.radius_stddev, rec.fit_rmse, rec.inlier_count, rec.flags))
             for g in ground_records(sm.trunks, side):
-                p, up = _in_map(np.array([g.point, np.add(g.point, g.normal)]), sm, poses[side])
-                nrm = (up - p) / np.linalg.norm(up - p)
+                p, nrm = ray_in_map(np.asarray(g.point), np.asarray(g.normal), sm, poses[side])
                 grounds.append(type(g)(tree_of.get((side, g.tree_id), -1), side, tuple(p), tuple(nrm),
                                        -float(nrm @ p), g.fit_rmse, g.inlier_count))
         self._pubs["trunks"].publish(trunks_to_msg(trunks, MAP_FRAME, stamp))
