@@ -58,7 +58,7 @@ import cv2
 import numpy as np
 
 from orchard_mapping.core.bundle_adjustment import ReconstructionError, bundle_adjust
-from orchard_mapping.core.loop_closure import no_keyframe_features
+from orchard_mapping.core.keyframe_features import no_keyframe_features
 from orchard_mapping.core.odometry import FrontEndParams, RGBDFrontEnd, _pose_from_rt, _rotation_deg
 from orchard_mapping.core.sidemap import FrontEndResult, Keyframe, Observations
 from orchard_mapping.core.types import CameraIntrinsics, RGBDFrame

@@ -39,7 +39,7 @@ from dataclasses import dataclass
 import cv2
 import numpy as np
 
-from orchard_mapping.core.loop_closure import make_keyframe_features, no_keyframe_features
+from orchard_mapping.core.keyframe_features import make_keyframe_features, no_keyframe_features
 from orchard_mapping.core.sidemap import FrontEndResult, Keyframe, Observations
 from orchard_mapping.core.types import CameraIntrinsics, RGBDFrame
 

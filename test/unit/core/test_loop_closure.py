@@ -20,15 +20,11 @@ import numpy as np
 import pytest
 from scipy.spatial.transform import Rotation
 
+from orchard_mapping.core.bag_of_words import BinaryVocabulary, bow_vectors, score_matrix
 from orchard_mapping.core.geometry import rotation_angle_deg
-from orchard_mapping.core.loop_closure import (
-    BinaryVocabulary,
-    LoopDetector,
-    PairVerifier,
-    bow_vectors,
-    make_keyframe_features,
-    score_matrix,
-)
+from orchard_mapping.core.keyframe_features import make_keyframe_features
+from orchard_mapping.core.loop_closure import LoopDetector
+from orchard_mapping.core.loop_verification import PairVerifier
 from orchard_mapping.core.sidemap import Keyframe
 from orchard_mapping.core.types import CameraIntrinsics
 
