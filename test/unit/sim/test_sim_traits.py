@@ -147,7 +147,7 @@ def test_alpha_complex_volume_cube():
     """A unit cube densely sampled (surface + interior): volume 1 within 2 %."""
     rng = np.random.default_rng(0)
     pts = _cube_samples(rng, np.zeros(3), 1.0)
-    assert alpha_complex_volume(pts, alpha=0.3) == pytest.approx(1.0, rel=0.02)
+    assert alpha_complex_volume(pts, alpha_m=0.3) == pytest.approx(1.0, rel=0.02)
 
 
 def test_alpha_complex_volume_sphere():
@@ -163,7 +163,7 @@ def test_alpha_complex_volume_sphere():
     surf = r * np.stack([np.cos(th) * np.sin(phi), np.sin(th) * np.sin(phi), np.cos(phi)], 1)
     d = rng.normal(size=(4000, 3))
     inner = d / np.linalg.norm(d, axis=1, keepdims=True) * (r * rng.uniform(0, 1, (4000, 1)) ** (1 / 3))
-    vol = alpha_complex_volume(np.vstack([surf, inner]) + [3.0, -1.0, 2.0], alpha=0.2)
+    vol = alpha_complex_volume(np.vstack([surf, inner]) + [3.0, -1.0, 2.0], alpha_m=0.2)
     assert vol == pytest.approx(4 / 3 * np.pi * r**3, rel=0.03)
 
 
@@ -172,8 +172,8 @@ def test_alpha_complex_is_not_the_convex_hull():
     rng = np.random.default_rng(2)
     pts = np.vstack([_cube_samples(rng, np.zeros(3), 1.0, 13, 600),
                      _cube_samples(rng, np.array([1.6, 0.0, 0.0]), 1.0, 13, 600)])
-    assert alpha_complex_volume(pts, alpha=0.25) == pytest.approx(2.0, rel=0.02)
-    assert alpha_complex_volume(pts, alpha=10.0) == pytest.approx(2.6, rel=0.02)
+    assert alpha_complex_volume(pts, alpha_m=0.25) == pytest.approx(2.0, rel=0.02)
+    assert alpha_complex_volume(pts, alpha_m=10.0) == pytest.approx(2.6, rel=0.02)
 
 
 def test_trunk_radii_takes_the_scenarios_trunk_spec_by_its_annotated_type():
