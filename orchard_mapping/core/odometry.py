@@ -172,7 +172,7 @@ def _plane_residual_rms(win: np.ndarray, k: int) -> np.ndarray:
     return np.sqrt(np.mean((win - fit) ** 2, axis=1))
 
 
-def _pose_from_rt(rvec: np.ndarray, tvec: np.ndarray) -> np.ndarray:
+def pose_from_rt(rvec: np.ndarray, tvec: np.ndarray) -> np.ndarray:
     """T_odom_cam from OpenCV's (rvec, tvec) = T_cam_odom."""
     R, _ = cv2.Rodrigues(rvec)
     T = np.eye(4)
@@ -187,7 +187,8 @@ def _rt_from_pose(T_odom_cam: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     return cv2.Rodrigues(R)[0], t.reshape(3, 1)
 
 
-def _rotation_deg(T: np.ndarray) -> float:
+def pose_rotation_deg(T: np.ndarray) -> float:
+    """Rotation angle (deg) of a pose or relative motion T (4, 4)."""
     return float(np.degrees(np.arccos(np.clip((np.trace(T[:3, :3]) - 1) / 2, -1, 1))))
 
 
@@ -421,12 +422,12 @@ class RGBDFrontEnd:
                 inl = np.flatnonzero(err < gate)
                 if len(inl) < self.p.min_inliers:
                     inl = tight
-        return _pose_from_rt(rvec, tvec), inl
+        return pose_from_rt(rvec, tvec), inl
 
     def _maybe_keyframe(self, gray: np.ndarray, frame: RGBDFrame, pose: np.ndarray) -> None:
         rel = np.linalg.inv(self._kf_pose) @ pose
         if (np.linalg.norm(rel[:3, 3]) > self.p.keyframe_translation_m
-                or _rotation_deg(rel) > self.p.keyframe_rotation_deg
+                or pose_rotation_deg(rel) > self.p.keyframe_rotation_deg
                 or len(self._pts) < self.p.keyframe_min_tracked):
             self._make_keyframe(gray, frame, pose)
 
@@ -491,7 +492,7 @@ class RGBDFrontEnd:
         features with depth (relocalisation, loop detection) only every orb_keyframe_* of motion."""
         rel = None if self._orb_pose is None else np.linalg.inv(self._orb_pose) @ pose
         if (rel is None or np.linalg.norm(rel[:3, 3]) >= self.p.orb_keyframe_translation_m
-                or _rotation_deg(rel) >= self.p.orb_keyframe_rotation_deg):
+                or pose_rotation_deg(rel) >= self.p.orb_keyframe_rotation_deg):
             kp_uv, desc, kp_z = make_keyframe_features(gray, depth, n_features=self.p.orb_features)
             self._orb_pose = pose.copy()
         else:  # between ORB keyframes: tracks only
