@@ -21,7 +21,7 @@ import numpy as np
 from rich.console import Console
 from rich.table import Table
 
-from orchard_mapping.core.fusion import TsdfFusion
+from orchard_mapping.core.tsdf import TsdfFusion
 from orchard_mapping.sim.scenario import load_scenario
 from orchard_mapping.sim.scene import Cls
 from orchard_mapping.sim.simulate import Rig

@@ -1,4 +1,4 @@
-"""TSDF fusion and depth cleaning (orchard_mapping/core/fusion.py) on simulated frames with known surfaces.
+"""TSDF fusion and depth cleaning (orchard_mapping/core/fusion.py, tsdf.py, depth_cleaning.py) on simulated frames with known surfaces.
 
 The recording: a 5-tree row, one level sweep of the front side (single_pass) at 1 m/s and 6 Hz
 (~38 frames, ~17 cm apart, over ~6 m; 5 trees, not 3, so that the moving volume's window is well under the
@@ -20,15 +20,9 @@ import open3d.core as o3c
 import pytest
 from scipy.spatial import cKDTree
 
-from orchard_mapping.core.fusion import (
-    MIXED_PIXEL_GAP_M,
-    FusionError,
-    FusionResult,
-    TsdfFusion,
-    clean_depth,
-    fuse_side,
-    remove_floating_pixels,
-)
+from orchard_mapping.core.depth_cleaning import MIXED_PIXEL_GAP_M, FusionError, clean_depth, remove_floating_pixels
+from orchard_mapping.core.fusion import FusionResult, fuse_side
+from orchard_mapping.core.tsdf import TsdfFusion
 from orchard_mapping.core.types import CameraIntrinsics
 from orchard_mapping.errors import OrchardMappingError
 from orchard_mapping.sim.scenario import load_scenario
