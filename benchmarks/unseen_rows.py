@@ -29,7 +29,8 @@ from typing import Any
 from rich.console import Console
 from rich.table import Table
 
-from orchard_mapping.sim.scan_rows import ScanRowSpec, generate_scan_row
+from orchard_mapping.sim.scan_row_scene import ScanRowSpec
+from orchard_mapping.sim.scan_rows import generate_scan_row
 
 ROOT = Path(__file__).resolve().parents[1]
 CLI = str(Path(sys.executable).with_name("orchard-map"))

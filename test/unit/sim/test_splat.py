@@ -11,14 +11,8 @@ import pytest
 
 from orchard_mapping.core.types import CameraIntrinsics
 from orchard_mapping.io.bags import read_rgbd
-from orchard_mapping.sim.scan_rows import (
-    ScanDataError,
-    ScanRowSpec,
-    fit_circle,
-    generate_scan_row,
-    load_scan_trees,
-    trunk_slices,
-)
+from orchard_mapping.sim.scan_row_scene import ScanDataError, ScanRowSpec, fit_circle, load_scan_trees, trunk_slices
+from orchard_mapping.sim.scan_rows import generate_scan_row
 from orchard_mapping.sim.splat import PCls, PointScene, SplatRenderer, StereoSensor
 
 K = CameraIntrinsics(160, 120, 150.0, 150.0, 79.5, 59.5)
