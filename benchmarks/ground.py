@@ -57,7 +57,7 @@ from orchard_mapping.core.geometry import matrix_to_quat
 from orchard_mapping.core.ground import GroundParams, fit_local_ground, fit_plane_plain_ransac
 from orchard_mapping.core.types import StampedTrajectory
 from orchard_mapping.eval.ground_truth import load_ground_truth
-from orchard_mapping.eval.landmarks import _local_alignment, _plane_errors
+from orchard_mapping.eval.landmarks import local_alignment, plane_errors
 from orchard_mapping.io.bags import read_rgbd
 from orchard_mapping.pipeline import Timings, reconstruct_side
 from orchard_mapping.sim.scenario import load_scenario
@@ -104,7 +104,7 @@ def link_to_truth(sim_dir: Path, side: str, rec: dict[str, Any]) -> list[dict[st
     out = []
     for c in rec["calls"]:
         base, stamps = min(rec["trunks"], key=lambda t: float(np.linalg.norm((t[0] - c["axis_point"])[:2])))
-        T = _local_alignment(stamps, est, ts.trajectory, ts.T_world_odom)
+        T = local_alignment(stamps, est, ts.trajectory, ts.T_world_odom)
         foot = T[:3, :3] @ c["axis_point"] + T[:3, 3]
         tree = gt.trees[int(np.argmin(np.linalg.norm(xy - foot[:2], axis=1)))]
         seen = tree.seen_ground.get(side)
@@ -151,12 +151,12 @@ def errors(calls: list[dict[str, Any]], fit_fn: Callable[[dict[str, Any], int], 
                 continue
             T, (p_t, n_t) = c["T"], c["seen"]
             n_w, p_w = T[:3, :3] @ fit.normal, T[:3, :3] @ fit.point + T[:3, 3]
-            errs.append(_plane_errors(n_w, p_w, p_t, n_t))
+            errs.append(plane_errors(n_w, p_w, p_t, n_t))
             if terrain is not None and fit.ground_cells is not None:
                 w = fit.ground_cells @ T[:3, :3].T + T[:3, 3]  # (G, 3) world
                 p_c, n_c = terrain_plane(terrain, w[:, 0], w[:, 1], float(p_t[0]), float(p_t[1]))
-                split["own cells"].append(_plane_errors(n_w, p_w, p_c, n_c))
-                split["cells vs truth"].append(_plane_errors(n_c, p_c, p_t, n_t))
+                split["own cells"].append(plane_errors(n_w, p_w, p_c, n_c))
+                split["cells vs truth"].append(plane_errors(n_c, p_c, p_t, n_t))
     out = {k: np.array(v).reshape(-1, 2) for k, v in split.items()} if terrain is not None else None
     return np.array(errs).reshape(-1, 2), none, out, none_seen
 

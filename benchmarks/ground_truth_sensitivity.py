@@ -28,7 +28,7 @@ from rich.table import Table
 
 import orchard_mapping.sim.simulate as sim_module
 import orchard_mapping.sim.truth as truth
-from orchard_mapping.eval.landmarks import _plane_errors
+from orchard_mapping.eval.landmarks import plane_errors
 from orchard_mapping.sim.scenario import load_scenario
 
 console = Console()
@@ -90,7 +90,7 @@ def main(argv: list[str] | None = None) -> int:
                 for f in MIN_FRAMES:
                     other = seen_plane(acc, tree, r, f)
                     if (r, f) != reference and other is not None:
-                        moved.setdefault((r, f), []).append(_plane_errors(other[1], other[0], ref[0], ref[1]))
+                        moved.setdefault((r, f), []).append(plane_errors(other[1], other[0], ref[0], ref[1]))
     table = Table(title=f"{args.scenario} seed {args.seed}: the truth's seen local ground under other thresholds "
                         f"against its own ({reference[0]:g} m, {reference[1]} frames)")
     for col in ("range m", "min frames", "tree-sides", "normal median / max deg", "|height| median / max mm",

@@ -25,7 +25,7 @@ from rich.console import Console
 from rich.table import Table
 from scipy.optimize import least_squares
 
-from orchard_mapping.core.cylinder import _basis
+from orchard_mapping.core.cylinder import perpendicular_basis
 from orchard_mapping.core.geometry import matrix_to_quat
 from orchard_mapping.core.types import StampedTrajectory
 from orchard_mapping.eval.evaluate import trunk_scene_points
@@ -49,7 +49,7 @@ def _circle(xy: np.ndarray) -> np.ndarray:
 def _slice_axis(lm, cloud: np.ndarray) -> np.ndarray | None:
     """(3,) unit axis through the centres of circles fitted to slices of the trunk's fused points."""
     a = lm.axis / np.linalg.norm(lm.axis)
-    e1, e2 = _basis(a)
+    e1, e2 = perpendicular_basis(a)
     rel = cloud - lm.base
     h = rel @ a
     r0 = lm.diameter_m / 2 if lm.diameter_m else 0.05

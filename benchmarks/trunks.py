@@ -46,7 +46,7 @@ from rich.table import Table
 from orchard_mapping.core.ground import GroundParams, fit_plane_plain_ransac, ground_neighbourhood
 from orchard_mapping.eval import evaluate_result
 from orchard_mapping.eval.ground_truth import load_ground_truth
-from orchard_mapping.eval.landmarks import _plane_errors, trunk_errors
+from orchard_mapping.eval.landmarks import plane_errors, trunk_errors
 from orchard_mapping.io.landmarks import read_grounds, read_trunks
 from orchard_mapping.io.results import read_timings, read_tum, trajectory_filename
 
@@ -113,7 +113,7 @@ def plain_ransac_grounds(sim_dir: Path, res_dir: Path, seed: int) -> dict[str, l
                 continue
             seen = tree.seen_ground.get(side)
             ref = seen if seen is not None else (tree.ground_point, tree.ground_normal)
-            n_e, h_e = _plane_errors(T[:3, :3] @ fit.normal, T[:3, :3] @ fit.point + T[:3, 3], ref[0], ref[1])
+            n_e, h_e = plane_errors(T[:3, :3] @ fit.normal, T[:3, :3] @ fit.point + T[:3, 3], ref[0], ref[1])
             errs.append((n_e, abs(h_e)))
         out[side] = errs
     return out

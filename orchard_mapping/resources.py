@@ -12,7 +12,7 @@ from pathlib import Path
 _PKG_DIR = Path(__file__).resolve().parent
 
 
-def _candidates(sub: str) -> list[Path]:
+def resource_candidates(sub: str) -> list[Path]:
     return [
         _PKG_DIR.parent / sub,  # source checkout / editable install
         Path(sys.prefix) / "share" / "orchard_mapping" / sub,  # ament_python install
@@ -21,10 +21,10 @@ def _candidates(sub: str) -> list[Path]:
 
 def resource_dir(sub: str) -> Path:
     """First existing folder named `sub` among the known install locations."""
-    for path in _candidates(sub):
+    for path in resource_candidates(sub):
         if path.is_dir():
             return path
-    raise FileNotFoundError(f"orchard_mapping resource folder '{sub}' not found in {_candidates(sub)}")
+    raise FileNotFoundError(f"orchard_mapping resource folder '{sub}' not found in {resource_candidates(sub)}")
 
 
 def config_dir() -> Path:

@@ -105,7 +105,7 @@ def point_distance(points: np.ndarray, cyl: Cylinder) -> np.ndarray:
     return np.linalg.norm(radial, axis=1) - cyl.radius
 
 
-def _radial_terms(points: np.ndarray, axis: np.ndarray, origin: np.ndarray
+def radial_terms(points: np.ndarray, axis: np.ndarray, origin: np.ndarray
                   ) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
     """rel (N, 3) points from the origin, h (N,) m along the axis, u (N, 3) unit radial directions, d (N,)
     radial distances of points (N, 3) from the axis line."""
@@ -116,7 +116,7 @@ def _radial_terms(points: np.ndarray, axis: np.ndarray, origin: np.ndarray
     return rel, h, q / d[:, None], d
 
 
-def _tilt_shift_jacobian(rel: np.ndarray, h: np.ndarray, u: np.ndarray, axis: np.ndarray, axis_length: float,
+def tilt_shift_jacobian(rel: np.ndarray, h: np.ndarray, u: np.ndarray, axis: np.ndarray, axis_length: float,
                          e1: np.ndarray, e2: np.ndarray, taper: float = 0.0) -> np.ndarray:
     """(N, 4) derivatives of each point's radial distance minus taper * h (a cone's radius change along the
     axis; 0 for a cylinder) with respect to (the axis tilted along e1, e2 before it is normalised from
@@ -453,8 +453,8 @@ def _refine(parts: list[tuple[Cylinder, np.ndarray, list[_ViewData]]], intr: Cam
         blocks = []
         for i, ((c0, P, _), (e1, e2), views, cyl) in enumerate(zip(parts, bases, stacked, unpack(x), strict=True)):
             a_len = float(np.linalg.norm(c0.axis + x[4 * i] * e1 + x[4 * i + 1] * e2))
-            rel, h, u, _ = _radial_terms(P, cyl.axis, cyl.origin)
-            J_part = [np.column_stack([_tilt_shift_jacobian(rel, h, u, cyl.axis, a_len, e1, e2), -np.ones(len(P))])
+            rel, h, u, _ = radial_terms(P, cyl.axis, cyl.origin)
+            J_part = [np.column_stack([tilt_shift_jacobian(rel, h, u, cyl.axis, a_len, e1, e2), -np.ones(len(P))])
                       / sigma_3d_m]
             if views is not None:
                 steps = tuple((e - (cyl.axis @ e) * cyl.axis) / a_len for e in (e1, e2))
@@ -493,14 +493,14 @@ def refine_cone_axis(points: np.ndarray, cyl: Cylinder, *, threshold_m: float, s
 
     def residuals(x: np.ndarray) -> np.ndarray:
         a, o, r, k = unpack(x)
-        _, h, _, d = _radial_terms(P, a, o)
+        _, h, _, d = radial_terms(P, a, o)
         return (d - (r + k * h)) / sigma_m
 
     def jacobian(x: np.ndarray) -> np.ndarray:
         a, o, _, k = unpack(x)
-        rel, h, u, _ = _radial_terms(P, a, o)
+        rel, h, u, _ = radial_terms(P, a, o)
         a_len = float(np.linalg.norm(cyl.axis + x[0] * e1 + x[1] * e2))
-        return np.column_stack([_tilt_shift_jacobian(rel, h, u, a, a_len, e1, e2, k), -np.ones(len(P)), -h]) / sigma_m
+        return np.column_stack([tilt_shift_jacobian(rel, h, u, a, a_len, e1, e2, k), -np.ones(len(P)), -h]) / sigma_m
 
     sol = least_squares(residuals, np.zeros(6), jac=jacobian, loss="huber", f_scale=huber_k, method="trf",
                         x_scale=[0.01, 0.01, 0.005, 0.005, 0.005, 0.01], max_nfev=100)

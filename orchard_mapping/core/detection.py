@@ -72,9 +72,9 @@ def resolve_model_path(model: str | Path) -> Path:
     p = Path(model)
     if p.is_absolute() or p.exists():
         return p
-    from orchard_mapping.resources import _candidates
+    from orchard_mapping.resources import resource_candidates
 
-    for root in _candidates("."):
+    for root in resource_candidates("."):
         if (root / p).exists():
             return root / p
     return p

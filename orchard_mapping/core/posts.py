@@ -23,7 +23,7 @@ import numpy as np
 from orchard_mapping.core.cylinder import Cylinder, CylinderError, fit_cylinder, point_distance
 from orchard_mapping.core.odometry import backproject
 from orchard_mapping.core.semantic_ba import PostShape, trunk_frame
-from orchard_mapping.core.trunks import TrunkLandmark, _associate
+from orchard_mapping.core.trunks import TrunkLandmark, associate_places
 from orchard_mapping.core.types import CameraIntrinsics
 
 __all__ = ["PostLandmark", "PostObservation", "build_post_landmarks", "fit_post_view", "pass_representatives", "post_shapes",
@@ -124,7 +124,7 @@ def refit_fixed_radius(obs: PostObservation, radius_m: float) -> PostObservation
     truth they were 0.5 / 3.4 mm."""
     from scipy.optimize import least_squares
 
-    from orchard_mapping.core.cylinder import _radial_terms, _tilt_shift_jacobian, perpendicular_basis
+    from orchard_mapping.core.cylinder import perpendicular_basis, radial_terms, tilt_shift_jacobian
 
     e1, e2 = perpendicular_basis(obs.axis_cam)
 
@@ -136,8 +136,8 @@ def refit_fixed_radius(obs: PostObservation, radius_m: float) -> PostObservation
 
     def jacobian(x: np.ndarray) -> np.ndarray:
         c = unpack(x)
-        rel, h, u, _ = _radial_terms(X, c.axis, c.origin)
-        return _tilt_shift_jacobian(rel, h, u, c.axis, float(np.linalg.norm(obs.axis_cam + x[0] * e1 + x[1] * e2)),
+        rel, h, u, _ = radial_terms(X, c.axis, c.origin)
+        return tilt_shift_jacobian(rel, h, u, c.axis, float(np.linalg.norm(obs.axis_cam + x[0] * e1 + x[1] * e2)),
                                     e1, e2)
 
     sol = least_squares(lambda x: point_distance(X, unpack(x)), np.zeros(4), jac=jacobian, loss="huber",
@@ -157,7 +157,7 @@ def build_post_landmarks(observations: list[PostObservation], poses: np.ndarray)
     places = np.array([poses[o.keyframe][:3, :3] @ o.centre_cam + poses[o.keyframe][:3, 3] for o in observations])
     axes = np.array([poses[o.keyframe][:3, :3] @ o.axis_cam for o in observations])  # (N, 3) odom, all "up"
     up = axes.sum(axis=0) / np.linalg.norm(axes.sum(axis=0))
-    label = _associate(places, up, ASSOCIATE_RADIUS_M)
+    label = associate_places(places, up, ASSOCIATE_RADIUS_M)
     groups = sorted((np.flatnonzero(label == k) for k in range(label.max() + 1)),
                     key=lambda g: min(observations[i].keyframe for i in g))
     out = []

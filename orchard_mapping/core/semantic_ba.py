@@ -179,7 +179,7 @@ def _skew(v: np.ndarray) -> np.ndarray:
     return S
 
 
-def _chain_covariances(poses: np.ndarray, anchors: np.ndarray, q_rot: float, q_trans: float) -> np.ndarray:
+def chain_covariances(poses: np.ndarray, anchors: np.ndarray, q_rot: float, q_trans: float) -> np.ndarray:
     """(K, 6, 6) covariance, in GTSAM's Pose3 tangent (rotation, translation) at keyframe k, of the pose of k
     relative to the last anchor before it, reached through the chain of per-step BetweenFactorPose3 with
     variances q_rot (rad^2) and q_trans (m^2) per axis; poses (K, 4, 4), anchors sorted indices (0 among them).
@@ -209,7 +209,7 @@ def _chain_covariances(poses: np.ndarray, anchors: np.ndarray, q_rot: float, q_t
     return cov
 
 
-def _fill_chain(poses: np.ndarray, anchors: np.ndarray, optimised: dict[int, np.ndarray], cov: np.ndarray) -> np.ndarray:
+def fill_chain(poses: np.ndarray, anchors: np.ndarray, optimised: dict[int, np.ndarray], cov: np.ndarray) -> np.ndarray:
     """(K, 4, 4) every keyframe after the anchors were optimised: between anchors a < b, the chain's
     most likely poses given both ends (the Gaussian bridge of its steps): P_k' = P_a' T_ak Exp(e_k) with
     e_k = cov_k Ad(T_kb^-1)^T cov_b^-1 xi_b, xi_b = Log((P_a' T_ab)^-1 P_b'). Exactly what the whole chain
@@ -294,7 +294,7 @@ def semantic_bundle_adjust(front: SideShapes, back: SideShapes, params: Semantic
     # Each side's chain between the keyframes that measure something (trunks, grounds, posts; and its ends)
     # is one BetweenFactorPose3 with the covariance of its steps composed: the same optimum as one factor
     # per step, to first order, with 0.3k instead of 12k poses on a 100-tree row (LM took 4.4 s there,
-    # 4.4x the 30-tree time); the keyframes between are filled in afterwards (_fill_chain).
+    # 4.4x the 30-tree time); the keyframes between are filled in afterwards (fill_chain).
     q_rot, q_trans = np.radians(params.step_sigma_rot_deg) ** 2, params.step_sigma_trans_m ** 2
     chains = {}
     k_height = None
@@ -305,7 +305,7 @@ def semantic_bundle_adjust(front: SideShapes, back: SideShapes, params: Semantic
                 | ({p.keyframe for p in side.posts} if params.use_posts else set())
                 | ({k_height} if sym is B and k_height is not None else set()))
         anchors = np.array(sorted(used | {0, len(side.poses) - 1}), np.int64)
-        cov = _chain_covariances(side.poses, anchors, q_rot, q_trans)
+        cov = chain_covariances(side.poses, anchors, q_rot, q_trans)
         chains[sym] = (anchors, cov)
         for k in anchors:
             values.insert(sym(int(k)), gtsam.Pose3(side.poses[k]))
@@ -351,7 +351,7 @@ def semantic_bundle_adjust(front: SideShapes, back: SideShapes, params: Semantic
     e0 = graph.error(values)
     result = optimise_in_steps(opt, lm)
     e1 = graph.error(result)
-    fp, bp = (_fill_chain(side.poses, chains[sym][0], {int(k): result.atPose3(sym(int(k))).matrix()
+    fp, bp = (fill_chain(side.poses, chains[sym][0], {int(k): result.atPose3(sym(int(k))).matrix()
                                                         for k in chains[sym][0]}, chains[sym][1])
               for sym, side in ((F, front), (B, back)))
     after = _trunks_in_map(front, back, fp, bp)

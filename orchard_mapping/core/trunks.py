@@ -219,7 +219,7 @@ def _backproject(depth: np.ndarray, mask: np.ndarray, intr: CameraIntrinsics, T_
     return transform_points(T_odom_cam, backproject(uv, depth[v, u].astype(float), intr))
 
 
-def _associate(places: np.ndarray, up: np.ndarray, radius: float) -> np.ndarray:
+def associate_places(places: np.ndarray, up: np.ndarray, radius: float) -> np.ndarray:
     """(N,) cluster label of each detection place (N, 3): single linkage across the up direction (the
     connected components of the graph joining places closer than `radius`)."""
     from scipy.sparse import coo_matrix
@@ -369,12 +369,12 @@ def build_trunk_landmarks(points: np.ndarray, poses: np.ndarray, views: list[Tru
             view_points.append(P[:: max(1, len(P) // _VIEW_POINTS_PER_DETECTION)])
     if not dets:
         return []
-    label = _associate(np.asarray(places), up, params.associate_radius_m)
+    label = associate_places(np.asarray(places), up, params.associate_radius_m)
     # The cameras' mean up is off by the mean pitch (a raised sweep looks down 35 deg), enough to keep a
     # trunk seen from above apart from the same trunk seen level: take up from the trunks themselves
     # (the long axis of each well-seen trunk's points) and associate again.
     up = _trunks_up(det_points, label, up)
-    label = _associate(np.asarray(places), up, params.associate_radius_m)
+    label = associate_places(np.asarray(places), up, params.associate_radius_m)
     index = SlabIndex(points)
     reach = max(ground_params.radius_m, ground_params.wide_radius_m, params.associate_radius_m) + 0.1 + _SLAB_MARGIN_M
     # order landmarks along the path: by the first keyframe that saw them

@@ -88,8 +88,8 @@ def evaluate_detector(model: str | Path, data: list[Path], threads: int = 2, *,
     with contextlib.redirect_stdout(io.StringIO()):
         gt.createIndex()
         dt = gt.loadRes(results) if results else COCO()
-        ev = _coco_eval(gt, dt, use_categories=True)
-        agnostic = _coco_eval(gt, dt, use_categories=False)
+        ev = coco_eval(gt, dt, use_categories=True)
+        agnostic = coco_eval(gt, dt, use_categories=False)
     precision = ev.eval["precision"]  # (T, R, K, A, M): IoU thresholds, recall, class, area, max dets
 
     def class_ap(k: int, iou: slice = slice(None)) -> float:
@@ -165,7 +165,7 @@ def _mean_valid(p: np.ndarray) -> float:
     return float(v.mean()) if v.size else -1.0
 
 
-def _coco_eval(gt, dt, use_categories: bool):
+def coco_eval(gt, dt, use_categories: bool):
     """pycocotools' COCOeval (segm), evaluated, accumulated and summarised (stats filled)."""
     from pycocotools.cocoeval import COCOeval
 

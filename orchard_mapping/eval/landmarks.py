@@ -66,7 +66,7 @@ class GroundErrors:
     per_tree: tuple[tuple[int, float, float], ...] = ()  # (trunk id, normal error deg, signed height error mm)
 
 
-def _local_alignment(stamps: np.ndarray, est: StampedTrajectory | None, true: StampedTrajectory,
+def local_alignment(stamps: np.ndarray, est: StampedTrajectory | None, true: StampedTrajectory,
                      T_world_odom: np.ndarray) -> np.ndarray:
     """(4, 4) world <- estimated odom near the median of `stamps` (the global T_world_odom without them)."""
     if est is None or not len(stamps) or not len(est.stamps):
@@ -98,7 +98,7 @@ def trunk_errors(gt: GroundTruth, side: str, trunks: list[ResultTrunk], est: Sta
     matched_true: set[int] = set()
     links: dict[int, tuple[TrueTree, np.ndarray]] = {}
     for r in mine:
-        T = _local_alignment(r.stamps, est, ts.trajectory, ts.T_world_odom)
+        T = local_alignment(r.stamps, est, ts.trajectory, ts.T_world_odom)
         base_w = T[:3, :3] @ r.base + T[:3, 3]
         d = np.linalg.norm(pos - base_w[:2], axis=1) if len(pos) else np.zeros(0)
         if not len(d) or d.min() > TRUNK_MATCH_RADIUS_M:
@@ -131,7 +131,7 @@ def trunk_errors(gt: GroundTruth, side: str, trunks: list[ResultTrunk], est: Sta
     ), links
 
 
-def _plane_errors(n_w: np.ndarray, q_w: np.ndarray, p_t: np.ndarray, n_t: np.ndarray) -> tuple[float, float]:
+def plane_errors(n_w: np.ndarray, q_w: np.ndarray, p_t: np.ndarray, n_t: np.ndarray) -> tuple[float, float]:
     """(normal error deg, signed height mm of our plane above the true one at p_t, along n_t)."""
     denom = float(n_w @ n_t)
     s = -float(n_w @ (p_t - q_w)) / denom if abs(denom) > 1e-6 else float("inf")
@@ -150,9 +150,9 @@ def ground_errors(side: str, grounds: list[ResultGround],
         seen = tree.seen_ground.get(side)
         ref = seen if seen is not None else (tree.ground_point, tree.ground_normal)
         refs.add("seen" if seen is not None else "full")
-        seen_e.append(_plane_errors(n_w, q_w, ref[0], ref[1]))
+        seen_e.append(plane_errors(n_w, q_w, ref[0], ref[1]))
         ids.append(g.trunk_id)
-        full_e.append(_plane_errors(n_w, q_w, tree.ground_point, tree.ground_normal))
+        full_e.append(plane_errors(n_w, q_w, tree.ground_point, tree.ground_normal))
     if not seen_e:
         return GroundErrors(0, "", None, None, None, None, None, None)
     a = np.array(seen_e)

@@ -17,7 +17,8 @@ import numpy as np
 from orchard_mapping.core.cylinder import Cylinder
 from orchard_mapping.core.detection import CLASS_NAMES
 from orchard_mapping.core.trunks import TrunkLandmark
-from orchard_mapping.io.results import _array, _fail, _get, _integer, _mapping, _number, atomic_write_json, load_json
+from orchard_mapping.io.json_fields import as_array, as_integer, as_mapping, as_number, field_error, get_field
+from orchard_mapping.io.results import atomic_write_json, load_json
 
 __all__ = [
     "GROUNDS_JSON",
@@ -115,43 +116,43 @@ class ResultGround:
 
 
 def _doc(path: Path, schema: str) -> Mapping[str, Any]:
-    doc = _mapping(load_json(path), path, "")
+    doc = as_mapping(load_json(path), path, "")
     if doc.get("schema") != schema:
-        raise _fail(path, "schema", f"expected {schema!r}, got {doc.get('schema')!r}")
-    return _mapping(_get(doc, "sides", path, ""), path, "sides")
+        raise field_error(path, "schema", f"expected {schema!r}, got {doc.get('schema')!r}")
+    return as_mapping(get_field(doc, "sides", path, ""), path, "sides")
 
 
 def _entries(path: Path, schema: str, key: str) -> Iterator[tuple[str, str, Mapping[str, Any]]]:
     """(side, dotted field name, entry) of every entry in sides.<side>.<key> of a landmarks file."""
     for side, body in _doc(path, schema).items():
-        items = _get(_mapping(body, path, f"sides.{side}"), key, path, f"sides.{side}")
+        items = get_field(as_mapping(body, path, f"sides.{side}"), key, path, f"sides.{side}")
         if not isinstance(items, list):
-            raise _fail(path, f"sides.{side}.{key}", "expected a list")
+            raise field_error(path, f"sides.{side}.{key}", "expected a list")
         for i, item in enumerate(items):
             w = f"sides.{side}.{key}[{i}]"
-            yield side, w, _mapping(item, path, w)
+            yield side, w, as_mapping(item, path, w)
 
 
 def read_trunks(path: str | Path) -> list[ResultTrunk]:
     path = Path(path)
     out = []
     for side, w, t in _entries(path, TRUNKS_SCHEMA, "trunks"):
-        obs = _get(t, "observations", path, w)
+        obs = get_field(t, "observations", path, w)
         if not isinstance(obs, list):
-            raise _fail(path, f"{w}.observations", "expected a list")
+            raise field_error(path, f"{w}.observations", "expected a list")
         out.append(ResultTrunk(
-            side=side, id=int(_integer(_get(t, "id", path, w), path, f"{w}.id")),
-            base=_array(_get(t, "base", path, w), (3,), path, f"{w}.base"),
-            axis=_array(_get(t, "axis", path, w), (3,), path, f"{w}.axis"),
-            diameter_m=_number(_get(t, "diameter_m", path, w), path, f"{w}.diameter_m", nullable=True, minimum=0),
-            diameter_3d_only_m=_number(t.get("diameter_3d_only_m"), path, f"{w}.diameter_3d_only_m",
+            side=side, id=int(as_integer(get_field(t, "id", path, w), path, f"{w}.id")),
+            base=as_array(get_field(t, "base", path, w), (3,), path, f"{w}.base"),
+            axis=as_array(get_field(t, "axis", path, w), (3,), path, f"{w}.axis"),
+            diameter_m=as_number(get_field(t, "diameter_m", path, w), path, f"{w}.diameter_m", nullable=True, minimum=0),
+            diameter_3d_only_m=as_number(t.get("diameter_3d_only_m"), path, f"{w}.diameter_3d_only_m",
                                        nullable=True, minimum=0),
-            length_m=float(_number(_get(t, "length_m", path, w), path, f"{w}.length_m") or 0.0),
-            stamps=np.array([_number(_get(_mapping(o, path, f"{w}.observations[{k}]"), "stamp", path,
+            length_m=float(as_number(get_field(t, "length_m", path, w), path, f"{w}.length_m") or 0.0),
+            stamps=np.array([as_number(get_field(as_mapping(o, path, f"{w}.observations[{k}]"), "stamp", path,
                                           f"{w}.observations[{k}]"), path, f"{w}.observations[{k}].stamp")
                              for k, o in enumerate(obs)], float),
             flags=tuple(str(f) for f in t.get("flags", [])),
-            axis_cone=None if t.get("axis_cone") is None else _array(t["axis_cone"], (3,), path, f"{w}.axis_cone")))
+            axis_cone=None if t.get("axis_cone") is None else as_array(t["axis_cone"], (3,), path, f"{w}.axis_cone")))
     return out
 
 
@@ -159,9 +160,9 @@ def read_grounds(path: str | Path) -> list[ResultGround]:
     path = Path(path)
     out = []
     for side, w, g in _entries(path, GROUNDS_SCHEMA, "grounds"):
-        n = _array(_get(g, "normal", path, w), (3,), path, f"{w}.normal")
+        n = as_array(get_field(g, "normal", path, w), (3,), path, f"{w}.normal")
         if abs(np.linalg.norm(n) - 1.0) > 1e-3:
-            raise _fail(path, f"{w}.normal", f"expected a unit vector, got norm {np.linalg.norm(n):.4f}")
-        out.append(ResultGround(side, int(_integer(_get(g, "trunk_id", path, w), path, f"{w}.trunk_id")), n,
-                                _array(_get(g, "point", path, w), (3,), path, f"{w}.point")))
+            raise field_error(path, f"{w}.normal", f"expected a unit vector, got norm {np.linalg.norm(n):.4f}")
+        out.append(ResultGround(side, int(as_integer(get_field(g, "trunk_id", path, w), path, f"{w}.trunk_id")), n,
+                                as_array(get_field(g, "point", path, w), (3,), path, f"{w}.point")))
     return out

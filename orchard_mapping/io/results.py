@@ -27,6 +27,7 @@ import numpy as np
 
 from orchard_mapping.core.types import StampedTrajectory
 from orchard_mapping.errors import ResultFormatError
+from orchard_mapping.io.json_fields import as_array, as_integer, as_mapping, as_number, field_error, get_field
 
 __all__ = [
     "RESULT_SCHEMA",
@@ -192,62 +193,6 @@ def load_json(path: Path, error: type[Exception] = ResultFormatError, what: str 
         raise error(f"{path}: not valid JSON: {err}") from err
 
 
-# ---------------------------------------------------------------- validation helpers
-
-
-def _fail(path: Path, where: str, msg: str) -> ResultFormatError:
-    return ResultFormatError(f"{path}: field '{where}': {msg}")
-
-
-def _get(obj: Mapping[str, Any], key: str, path: Path, where: str) -> Any:
-    if key not in obj:
-        raise _fail(path, f"{where}.{key}" if where else key, "missing")
-    return obj[key]
-
-
-def _mapping(v: Any, path: Path, where: str) -> Mapping[str, Any]:
-    if not isinstance(v, Mapping):
-        raise _fail(path, where or "<root>", f"expected an object, got {type(v).__name__}")
-    return v
-
-
-def _number(v: Any, path: Path, where: str, *, nullable: bool = False, minimum: float | None = None) -> float | None:
-    if v is None and nullable:
-        return None
-    if isinstance(v, bool) or not isinstance(v, (int, float)) or not math.isfinite(v):
-        raise _fail(path, where, f"expected a finite number{' or null' if nullable else ''}, got {v!r}")
-    if minimum is not None and v < minimum:
-        raise _fail(path, where, f"must be >= {minimum}, got {v!r}")
-    return float(v)
-
-
-def _integer(v: Any, path: Path, where: str, *, nullable: bool = False, minimum: int | None = None) -> int | None:
-    if v is None and nullable:
-        return None
-    if isinstance(v, float) and v.is_integer():
-        v = int(v)
-    if isinstance(v, bool) or not isinstance(v, int):
-        raise _fail(path, where, f"expected an integer{' or null' if nullable else ''}, got {v!r}")
-    if minimum is not None and v < minimum:
-        raise _fail(path, where, f"must be >= {minimum}, got {v!r}")
-    return int(v)
-
-
-def _array(v: Any, shape: tuple[int, ...], path: Path, where: str) -> np.ndarray:
-    """Finite float array of `shape` (-1 = any length)."""
-    try:
-        a = np.asarray(v, dtype=float)
-    except (TypeError, ValueError) as err:
-        raise _fail(path, where, f"expected numbers of shape {shape}: {err}") from err
-    if a.size == 0 and -1 in shape:
-        a = a.reshape(tuple(0 if s == -1 else s for s in shape))
-    if a.ndim != len(shape) or any(s != -1 and s != n for s, n in zip(shape, a.shape, strict=True)):
-        raise _fail(path, where, f"expected shape {shape}, got {a.shape}")
-    if not np.all(np.isfinite(a)):
-        raise _fail(path, where, "contains a non-finite value")
-    return a
-
-
 # ---------------------------------------------------------------- trees
 
 
@@ -286,28 +231,28 @@ class ResultTree:
 
 
 def _tree_from_json(obj: Any, path: Path, where: str) -> ResultTree:
-    t = _mapping(obj, path, where)
-    pos = _array(_get(t, "position", path, where), (3,), path, f"{where}.position")
+    t = as_mapping(obj, path, where)
+    pos = as_array(get_field(t, "position", path, where), (3,), path, f"{where}.position")
     fruit = None
     if t.get("fruit_positions") is not None:
-        fruit = _array(t["fruit_positions"], (-1, 3), path, f"{where}.fruit_positions")
+        fruit = as_array(t["fruit_positions"], (-1, 3), path, f"{where}.fruit_positions")
     per_side = t.get("per_side")
     if per_side is not None:
-        _mapping(per_side, path, f"{where}.per_side")
+        as_mapping(per_side, path, f"{where}.per_side")
     flags = t.get("flags") or []
     if not isinstance(flags, list) or not all(isinstance(f, str) for f in flags):
-        raise _fail(path, f"{where}.flags", f"expected a list of strings, got {flags!r}")
+        raise field_error(path, f"{where}.flags", f"expected a list of strings, got {flags!r}")
     return ResultTree(
-        id=_integer(_get(t, "id", path, where), path, f"{where}.id"),  # type: ignore[arg-type]
+        id=as_integer(get_field(t, "id", path, where), path, f"{where}.id"),  # type: ignore[arg-type]
         position=(float(pos[0]), float(pos[1]), float(pos[2])),
-        trunk_diameter_m=_number(
+        trunk_diameter_m=as_number(
             t.get("trunk_diameter_m"), path, f"{where}.trunk_diameter_m", nullable=True, minimum=0
         ),
-        height_m=_number(t.get("height_m"), path, f"{where}.height_m", nullable=True, minimum=0),
-        canopy_volume_m3=_number(
+        height_m=as_number(t.get("height_m"), path, f"{where}.height_m", nullable=True, minimum=0),
+        canopy_volume_m3=as_number(
             t.get("canopy_volume_m3"), path, f"{where}.canopy_volume_m3", nullable=True, minimum=0
         ),
-        fruit_count=_integer(t.get("fruit_count"), path, f"{where}.fruit_count", nullable=True, minimum=0),
+        fruit_count=as_integer(t.get("fruit_count"), path, f"{where}.fruit_count", nullable=True, minimum=0),
         fruit_positions=fruit,
         per_side=per_side,
         flags=tuple(flags),
@@ -316,20 +261,20 @@ def _tree_from_json(obj: Any, path: Path, where: str) -> ResultTree:
 
 
 def _trees_from_document(doc: Any, path: Path) -> list[ResultTree]:
-    d = _mapping(doc, path, "")
-    schema = _get(d, "schema", path, "")
+    d = as_mapping(doc, path, "")
+    schema = get_field(d, "schema", path, "")
     if schema != RESULT_SCHEMA:
-        raise _fail(path, "schema", f"expected {RESULT_SCHEMA!r}, got {schema!r}")
-    frame = _get(d, "frame", path, "")
+        raise field_error(path, "schema", f"expected {RESULT_SCHEMA!r}, got {schema!r}")
+    frame = get_field(d, "frame", path, "")
     if frame not in TREES_FRAMES:
-        raise _fail(path, "frame", f"expected one of {TREES_FRAMES}, got {frame!r}")
-    trees = _get(d, "trees", path, "")
+        raise field_error(path, "frame", f"expected one of {TREES_FRAMES}, got {frame!r}")
+    trees = get_field(d, "trees", path, "")
     if not isinstance(trees, list):
-        raise _fail(path, "trees", f"expected a list, got {type(trees).__name__}")
+        raise field_error(path, "trees", f"expected a list, got {type(trees).__name__}")
     out = [_tree_from_json(t, path, f"trees[{i}]") for i, t in enumerate(trees)]
     ids = [t.id for t in out]
     if len(set(ids)) != len(ids):
-        raise _fail(path, "trees[].id", f"ids are not unique: {sorted(ids)}")
+        raise field_error(path, "trees[].id", f"ids are not unique: {sorted(ids)}")
     return out
 
 
@@ -510,10 +455,10 @@ class SideMerge:
 
 def _similarity_scale(T: np.ndarray, path: Path, where: str) -> float:
     if not np.allclose(T[3], [0.0, 0.0, 0.0, 1.0], atol=1e-9):
-        raise _fail(path, where, f"last row must be [0, 0, 0, 1], got {T[3].tolist()}")
+        raise field_error(path, where, f"last row must be [0, 0, 0, 1], got {T[3].tolist()}")
     det = float(np.linalg.det(T[:3, :3]))
     if det <= 1e-12:
-        raise _fail(path, where, f"3x3 block is singular or a reflection (det = {det:.3g})")
+        raise field_error(path, where, f"3x3 block is singular or a reflection (det = {det:.3g})")
     return det ** (1.0 / 3.0)
 
 
@@ -527,7 +472,7 @@ def write_side_merge(
 ) -> Path:
     """Write side_merge.json; `scale` = cbrt(det) of the 3x3 block of T_front_back."""
     path = Path(path)
-    T = _array(T_front_back, (4, 4), path, "T_front_back")
+    T = as_array(T_front_back, (4, 4), path, "T_front_back")
     doc = {
         "T_front_back": T,
         "scale": _similarity_scale(T, path, "T_front_back"),
@@ -543,15 +488,15 @@ def read_side_merge(path: str | Path) -> SideMerge:
     path = Path(path)
     if path.is_dir():
         path = path / SIDE_MERGE_JSON
-    d = _mapping(load_json(path), path, "")
-    T = _array(_get(d, "T_front_back", path, ""), (4, 4), path, "T_front_back")
+    d = as_mapping(load_json(path), path, "")
+    T = as_array(get_field(d, "T_front_back", path, ""), (4, 4), path, "T_front_back")
     s_matrix = _similarity_scale(T, path, "T_front_back")
-    s = _number(d.get("scale", s_matrix), path, "scale", minimum=0.0)
+    s = as_number(d.get("scale", s_matrix), path, "scale", minimum=0.0)
     assert s is not None
     if abs(s - s_matrix) > 1e-4 * s_matrix:
-        raise _fail(path, "scale", f"{s!r} disagrees with the scale of T_front_back ({s_matrix:.6g})")
+        raise field_error(path, "scale", f"{s!r} disagrees with the scale of T_front_back ({s_matrix:.6g})")
     residuals = d.get("residuals") or {}
-    _mapping(residuals, path, "residuals")
+    as_mapping(residuals, path, "residuals")
     known = {"T_front_back", "scale", "residuals", "overlap"}
     return SideMerge(
         T_front_back=T,
@@ -604,12 +549,12 @@ def write_timings(
 
 
 def _timings_from_document(doc: Any, path: Path) -> Timings:
-    d = _mapping(doc, path, "")
-    stages = _mapping(_get(d, "stages", path, ""), path, "stages")
-    parsed = {str(k): _number(v, path, f"stages.{k}", minimum=0.0) for k, v in stages.items()}
-    frames = _integer(d.get("frames"), path, "frames", nullable=True, minimum=0)
-    rec = _number(d.get("recording_duration_s"), path, "recording_duration_s", nullable=True, minimum=0.0)
-    wall = _number(d.get("wall_s"), path, "wall_s", nullable=True, minimum=0.0)
+    d = as_mapping(doc, path, "")
+    stages = as_mapping(get_field(d, "stages", path, ""), path, "stages")
+    parsed = {str(k): as_number(v, path, f"stages.{k}", minimum=0.0) for k, v in stages.items()}
+    frames = as_integer(d.get("frames"), path, "frames", nullable=True, minimum=0)
+    rec = as_number(d.get("recording_duration_s"), path, "recording_duration_s", nullable=True, minimum=0.0)
+    wall = as_number(d.get("wall_s"), path, "wall_s", nullable=True, minimum=0.0)
     return Timings(stages=parsed, frames=frames, recording_duration_s=rec, wall_s=wall)  # type: ignore[arg-type]
 
 

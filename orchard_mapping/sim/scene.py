@@ -349,8 +349,8 @@ TRUNK_SEGMENTS = 20  # vertices around the trunk's cross-section
 _TRUNK_SHAPE_STREAM = 0x7472756E  # the trunks' cross-section draws (seed, this, tree)
 
 
-def _trunk_radii(rng: np.random.Generator, tr: TrunkSpec, s: np.ndarray, r_mean: np.ndarray, segments: int
-                 ) -> np.ndarray:
+def trunk_radii(rng: np.random.Generator, tr: TrunkSpec, s: np.ndarray, r_mean: np.ndarray, segments: int
+                ) -> np.ndarray:
     """Radii of the trunk mesh: (K,) a circle of r_mean (m) at each axis point, or (K, segments) where
     the trunk is elliptical or its bark rough. An ellipse of semi-axes r (1 + e) and r (1 - e), its major
     axis turned at random, keeps the stated diameter as the mean of its two axes (two caliper readings
@@ -400,7 +400,7 @@ def _build_tree(mb: MeshBuilder, rng: np.random.Generator, sc: Scenario, tid: in
     d_clear = d_stated + tr.taper_per_m * (s_stated - s_clear)
     frac = np.clip((s - s_clear) / (leader_len - s_clear), 0, 1)
     diam = np.where(s <= s_clear, d_lin, d_clear * (1 - 0.8 * frac ** 0.8))
-    v, t = tube(axis, _trunk_radii(shape_rng, tr, s, diam / 2, TRUNK_SEGMENTS), TRUNK_SEGMENTS)
+    v, t = tube(axis, trunk_radii(shape_rng, tr, s, diam / 2, TRUNK_SEGMENTS), TRUNK_SEGMENTS)
     t0 = mb.n_triangles
     ap = sc.appearance
     bark = np.array(ap.bark_rgb) * rng.uniform(*ap.bark_gain)

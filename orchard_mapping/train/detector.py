@@ -210,7 +210,7 @@ def save_checkpoint(model, path: Path) -> Path:
 
 def load_checkpoint(model, path: Path) -> list[str]:
     """Load `path` into `model`; returns the model's FPN tensors the checkpoint had no level for (left at
-    their fresh initialisation, see `_match_fpn_levels`). Any other tensor missing, extra or of another
+    their fresh initialisation, see `match_fpn_levels`). Any other tensor missing, extra or of another
     shape is an error."""
     import torch
 
@@ -219,7 +219,7 @@ def load_checkpoint(model, path: Path) -> list[str]:
     except (OSError, RuntimeError, ValueError) as err:
         raise ValueError(f"checkpoint {path}: not readable ({err})") from err
     own = model.state_dict()
-    state, fresh = _match_fpn_levels(state, own)
+    state, fresh = match_fpn_levels(state, own)
     wrong = [k for k in own if k not in fresh and (k not in state or state[k].shape != own[k].shape)]
     wrong += [k for k in state if k not in own]
     if wrong:
@@ -233,7 +233,7 @@ def load_checkpoint(model, path: Path) -> list[str]:
 _FPN = "backbone.fpn."
 
 
-def _match_fpn_levels(state: dict, own: dict) -> tuple[dict, list[str]]:
+def match_fpn_levels(state: dict, own: dict) -> tuple[dict, list[str]]:
     """Carry a checkpoint over to a model whose FPN reads other backbone stages (`fpn_strides`): each FPN
     level of the model takes the checkpoint's level that read a stage with as many channels (the same
     stage of the shared backbone), and a level with none starts from its fresh initialisation. Returns the

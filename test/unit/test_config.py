@@ -81,12 +81,11 @@ def test_dump_is_loadable_yaml():
 def test_set_keeps_on_off_yes_no_as_words():
     """`--set merge.method=off` is the method "off", not YAML 1.1's false (it was rejected as a bad
     value); true/false, numbers and lists still parse."""
-    from orchard_mapping.cli.main import _parse_sets
-    from orchard_mapping.config import load_config, unflatten
+    from orchard_mapping.config import load_config, parse_sets, unflatten
 
-    sets = _parse_sets(["merge.method=off", "trunks.source=masks", "seed=3", "fusion.keep_color=true"])
+    sets = parse_sets(["merge.method=off", "trunks.source=masks", "seed=3", "fusion.keep_color=true"])
     assert sets == {"merge.method": "off", "trunks.source": "masks", "seed": 3, "fusion.keep_color": True}
-    assert load_config(overrides=unflatten(_parse_sets(["merge.method=off"]))).merge.method == "off"
+    assert load_config(overrides=unflatten(parse_sets(["merge.method=off"]))).merge.method == "off"
 
 
 def test_off_in_a_config_file_is_the_word(tmp_path):

@@ -167,12 +167,12 @@ def test_chain_covariance_composes_the_steps_as_gtsam_does(seed):
     Pose3 adjoints (Sigma <- Ad(S^-1) Sigma Ad(S^-1)^T + Q per step S)."""
     import gtsam
 
-    from orchard_mapping.core.semantic_ba import _chain_covariances
+    from orchard_mapping.core.semantic_ba import chain_covariances
 
     poses = _wandering_path(np.random.default_rng(seed))
     anchors = np.array([0, 17, 18, 44, 59])
     q_rot, q_trans = np.radians(0.02) ** 2, 0.001 ** 2
-    cov = _chain_covariances(poses, anchors, q_rot, q_trans)
+    cov = chain_covariances(poses, anchors, q_rot, q_trans)
     Q = np.diag([q_rot] * 3 + [q_trans] * 3)
     for a, b in zip(anchors[:-1], anchors[1:], strict=True):
         S = np.zeros((6, 6))
@@ -189,16 +189,16 @@ def test_chain_filled_between_anchors_is_the_whole_chains_optimum():
     import gtsam
     from gtsam.symbol_shorthand import X
 
-    from orchard_mapping.core.semantic_ba import _chain_covariances, _fill_chain
+    from orchard_mapping.core.semantic_ba import chain_covariances, fill_chain
 
     rng = np.random.default_rng(3)
     poses = _wandering_path(rng)
     anchors = np.array([0, 21, 40, 59])
     sig_r, sig_t = np.radians(0.02), 0.001
-    cov = _chain_covariances(poses, anchors, sig_r ** 2, sig_t ** 2)
+    cov = chain_covariances(poses, anchors, sig_r ** 2, sig_t ** 2)
     moved = {int(a): poses[a] @ make_transform(Rotation.from_rotvec(rng.normal(0, np.radians(0.05), 3)).as_matrix(),
                                                rng.normal(0, 0.005, 3)) for a in anchors}
-    filled = _fill_chain(poses, anchors, moved, cov)
+    filled = fill_chain(poses, anchors, moved, cov)
 
     graph, values = gtsam.NonlinearFactorGraph(), gtsam.Values()
     step = gtsam.noiseModel.Diagonal.Sigmas(np.array([sig_r] * 3 + [sig_t] * 3))

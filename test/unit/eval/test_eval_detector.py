@@ -115,7 +115,7 @@ def _evaluated(found_in: list[bool]):
     always found exactly, the trunk exactly in the frames where found_in says so and not at all elsewhere."""
     from pycocotools.coco import COCO
 
-    from orchard_mapping.eval.detector import _coco_eval
+    from orchard_mapping.eval.detector import coco_eval
 
     trunk, post = _frame_mask(TRUNK), _frame_mask(POST)
     images, anns, results = [], [], []
@@ -131,7 +131,7 @@ def _evaluated(found_in: list[bool]):
     gt.dataset = {"images": images, "annotations": anns,
                   "categories": [{"id": CLASS_TRUNK, "name": "trunk"}, {"id": CLASS_POST, "name": "post"}]}
     gt.createIndex()
-    return _coco_eval(gt, gt.loadRes(results), use_categories=True)
+    return coco_eval(gt, gt.loadRes(results), use_categories=True)
 
 
 def test_frames_are_resampled_by_the_recording_their_name_gives():

@@ -177,20 +177,20 @@ def test_alpha_complex_is_not_the_convex_hull():
 
 
 def test_trunk_radii_takes_the_scenarios_trunk_spec_by_its_annotated_type():
-    """_trunk_radii's annotations resolve (they named TrunkSpec, which scene.py did not import: get_type_hints
+    """trunk_radii's annotations resolve (they named TrunkSpec, which scene.py did not import: get_type_hints
     raised NameError), and the function gives a round trunk as is and an elliptical one as (K, segments)."""
     import typing
 
     from orchard_mapping.sim import scene as scene_module
     from orchard_mapping.sim.scenario import TrunkSpec
 
-    assert typing.get_type_hints(scene_module._trunk_radii)["tr"] is TrunkSpec
+    assert typing.get_type_hints(scene_module.trunk_radii)["tr"] is TrunkSpec
     s = np.linspace(0.0, 1.0, 5)
     r_mean = np.full(5, 0.04)
     plain = load_scenario("standard", {"trunk.ellipticity": [0.0, 0.0], "trunk.bark_roughness_m": 0.0}).trunk
     assert isinstance(plain, TrunkSpec)
-    assert scene_module._trunk_radii(np.random.default_rng(0), plain, s, r_mean, 20) is r_mean
+    assert scene_module.trunk_radii(np.random.default_rng(0), plain, s, r_mean, 20) is r_mean
     oval = load_scenario("standard", {"trunk.ellipticity": [0.08, 0.08]}).trunk
-    radii = scene_module._trunk_radii(np.random.default_rng(0), oval, s, r_mean, 20)
+    radii = scene_module.trunk_radii(np.random.default_rng(0), oval, s, r_mean, 20)
     assert radii.shape == (5, 20)
     assert radii.max() == pytest.approx(0.04 * 1.08, rel=0.02)

@@ -6,7 +6,7 @@ from types import SimpleNamespace
 import numpy as np
 import pytest
 
-from orchard_mapping.train.detector import _match_fpn_levels, fpn_stage_blocks
+from orchard_mapping.train.detector import fpn_stage_blocks, match_fpn_levels
 
 
 def _mobilenet_v3_large_marks():
@@ -42,7 +42,7 @@ def _fpn(levels_in: list[int], fill: float, c: int = 4) -> dict[str, np.ndarray]
 
 def test_a_checkpoint_of_the_same_layout_is_taken_whole():
     state = _fpn([160, 960], 1.0)
-    out, fresh = _match_fpn_levels(state, _fpn([160, 960], 0.0))
+    out, fresh = match_fpn_levels(state, _fpn([160, 960], 0.0))
     assert out is state and fresh == []
 
 
@@ -51,7 +51,7 @@ def test_levels_are_matched_by_the_stage_they_read_and_new_ones_stay_fresh():
     # 12 (112) and 16 (960): its stride-32 level must take the old level 1, the others start fresh
     state = _fpn([160, 960], 1.0)
     own = _fpn([40, 112, 960], 0.0)
-    out, fresh = _match_fpn_levels(state, own)
+    out, fresh = match_fpn_levels(state, own)
     for kind in ("inner_blocks", "layer_blocks"):
         for part in ("weight", "bias"):
             np.testing.assert_array_equal(out[f"backbone.fpn.{kind}.2.0.{part}"],
