@@ -14,7 +14,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from orchard_mapping.sim.scenario import MotionSpec, Scenario
+from orchard_mapping.sim.scenario import MotionSpec, PathSpec, Scenario
 from orchard_mapping.sim.scene import Terrain
 
 
@@ -90,6 +90,27 @@ def carrier_motion(m: MotionSpec, t: np.ndarray, travelled: np.ndarray, rng: np.
     return pos, ang
 
 
+def _hand_shake(p: PathSpec, t: np.ndarray, travelled: np.ndarray, rng: np.random.Generator
+                ) -> tuple[np.ndarray, np.ndarray]:
+    """(position offset (n, 3) m, angle offset (n, 3) rad) of a hand-held camera at times t (n,): smooth jitter
+    plus the carrier's motion (carrier_motion) along the distance travelled (n,) m."""
+    jit = _smooth_noise(rng, t, p.jitter_m, 3)
+    ang = np.radians(_smooth_noise(rng, t, p.jitter_deg, 3))
+    c_pos, c_ang = carrier_motion(p.motion, t, travelled, rng)
+    return jit + c_pos, ang + np.radians(c_ang)
+
+
+def _looking_poses(pos: np.ndarray, yaws: np.ndarray, pits: np.ndarray, roll: np.ndarray
+                   ) -> tuple[np.ndarray, float]:
+    """(T_world_cam (n, 4, 4), path length m) of cameras at pos (n, 3) looking along yaw and pitch (n,) rad,
+    rolled by roll (n,) rad."""
+    fwd = np.stack([np.cos(pits) * np.cos(yaws), np.cos(pits) * np.sin(yaws), np.sin(pits)], 1)
+    T = np.tile(np.eye(4), (len(pos), 1, 1))
+    T[:, :3, :3] = look_rotation(fwd, roll)
+    T[:, :3, 3] = pos
+    return T, float(np.sum(np.linalg.norm(np.diff(pos, axis=0), axis=1)))
+
+
 def _ease(u: np.ndarray) -> np.ndarray:
     return u * u * (3 - 2 * u)
 
@@ -137,21 +158,10 @@ def side_path(sc: Scenario, side: str, row_x: tuple[float, float], terrain: Terr
     n = len(x)
     t = np.arange(n) / rate
     y = sgn * np.concatenate(dist)
-    jit = _smooth_noise(rng, t, p.jitter_m, 3)
-    ang = np.radians(_smooth_noise(rng, t, p.jitter_deg, 3))
     travelled = np.concatenate([[0.0], np.cumsum(np.hypot(np.diff(x), np.diff(h)))])
-    c_pos, c_ang = carrier_motion(p.motion, t, travelled, rng)
-    jit = jit + c_pos
-    ang = ang + np.radians(c_ang)
+    jit, ang = _hand_shake(p, t, travelled, rng)
     pos = np.stack([x, y, terrain.height(x, y) + h], 1) + jit
-    yaws = yaw + ang[:, 0]
-    pits = pit + ang[:, 1]
-    fwd = np.stack([np.cos(pits) * np.cos(yaws), np.cos(pits) * np.sin(yaws), np.sin(pits)], 1)
-    R = look_rotation(fwd, np.radians(p.roll_deg) + ang[:, 2])
-    T = np.tile(np.eye(4), (n, 1, 1))
-    T[:, :3, :3] = R
-    T[:, :3, 3] = pos
-    length = float(np.sum(np.linalg.norm(np.diff(pos, axis=0), axis=1)))
+    T, length = _looking_poses(pos, yaw + ang[:, 0], pit + ang[:, 1], np.radians(p.roll_deg) + ang[:, 2])
     return CameraPath(t0 + t, T, np.full(n, side), length)
 
 
@@ -172,18 +182,8 @@ def _loop_path(sc: Scenario, row_x: tuple[float, float], terrain: Terrain, rng: 
     sides = np.array(["front"] * (len(s1) + len(arc) // 2) + ["back"] * (len(arc) - len(arc) // 2 + len(s3)))
     n = len(x)
     t = np.arange(n) / rate
-    jit = _smooth_noise(rng, t, p.jitter_m, 3)
-    ang = np.radians(_smooth_noise(rng, t, p.jitter_deg, 3))
     travelled = np.concatenate([[0.0], np.cumsum(np.hypot(np.diff(x), np.diff(y)))])
-    c_pos, c_ang = carrier_motion(p.motion, t, travelled, rng)
-    jit = jit + c_pos
-    ang = ang + np.radians(c_ang)
+    jit, ang = _hand_shake(p, t, travelled, rng)
     pos = np.stack([x, y, terrain.height(x, y) + p.low_height_m], 1) + jit
-    yaws = yaw + ang[:, 0]
-    pits = ang[:, 1]
-    fwd = np.stack([np.cos(pits) * np.cos(yaws), np.cos(pits) * np.sin(yaws), np.sin(pits)], 1)
-    T = np.tile(np.eye(4), (n, 1, 1))
-    T[:, :3, :3] = look_rotation(fwd, np.radians(p.roll_deg) + ang[:, 2])
-    T[:, :3, 3] = pos
-    length = float(np.sum(np.linalg.norm(np.diff(pos, axis=0), axis=1)))
+    T, length = _looking_poses(pos, yaw + ang[:, 0], ang[:, 1], np.radians(p.roll_deg) + ang[:, 2])
     return CameraPath(t0 + t, T, sides, length)
