@@ -294,9 +294,9 @@ def optimise_pose_graph(
     *,
     sigma_rot_deg: float = 0.5,
     sigma_trans_m: float = 0.01,
-    loop_sigma_rot_deg: float = 1.0,
-    loop_sigma_trans_m: float = 0.02,
-    huber_k: float | None = 1.345,
+    loop_sigma_rot_deg: float = BundleAdjustmentParams.loop_sigma_rot_deg,
+    loop_sigma_trans_m: float = BundleAdjustmentParams.loop_sigma_trans_m,
+    huber_k: float | None = BundleAdjustmentParams.huber_k,
     max_iterations: int = 100,
 ) -> np.ndarray:
     """Pose-graph optimisation (paper: before global BA, to close loops).
@@ -375,20 +375,20 @@ def bundle_adjust(
     *,
     mode: Literal["rgbd", "rgb"] = "rgbd",
     loops: Sequence[LoopClosure] = (),
-    pixel_sigma: float = 1.0,
-    disparity_sigma: float | None = None,
-    baseline_m: float = 0.05,
-    huber_k: float | None = 1.345,
-    loop_sigma_rot_deg: float = 1.0,
-    loop_sigma_trans_m: float = 0.02,
+    pixel_sigma: float = BundleAdjustmentParams.pixel_sigma,
+    disparity_sigma: float | None = BundleAdjustmentParams.disparity_sigma,
+    baseline_m: float = BundleAdjustmentParams.baseline_m,
+    huber_k: float | None = BundleAdjustmentParams.huber_k,
+    loop_sigma_rot_deg: float = BundleAdjustmentParams.loop_sigma_rot_deg,
+    loop_sigma_trans_m: float = BundleAdjustmentParams.loop_sigma_trans_m,
     bridge_sigma_rot_deg: float = 1.0,
     bridge_sigma_trans_m: float = 0.05,
-    max_iterations: int = 50,
-    min_observations: int = 2,
-    relative_error_tol: float = 1e-5,
+    max_iterations: int = BundleAdjustmentParams.max_iterations,
+    min_observations: int = BundleAdjustmentParams.min_observations,
+    relative_error_tol: float = BundleAdjustmentParams.relative_error_tol,
     scale_anchor: int | None = None,
     hold: Sequence[int] = (),
-    max_track: int = 0,
+    max_track: int = BundleAdjustmentParams.max_track,
 ) -> BAResult:
     """Global bundle adjustment, eq. (objectBA), with Huber on every term.
 
@@ -595,8 +595,8 @@ def bundle_adjust_windowed(
     spanning = [lc for i, lc in enumerate(loops) if i not in used_loops]
     if spanning:  # the last pass over the reduced problem: keyframe poses only
         before = out
-        out = optimise_pose_graph(out, spanning, loop_sigma_rot_deg=kw.get("loop_sigma_rot_deg", 1.0),
-                                  loop_sigma_trans_m=kw.get("loop_sigma_trans_m", 0.02))
+        out = optimise_pose_graph(out, spanning, loop_sigma_rot_deg=kw.get("loop_sigma_rot_deg", BundleAdjustmentParams.loop_sigma_rot_deg),
+                                  loop_sigma_trans_m=kw.get("loop_sigma_trans_m", BundleAdjustmentParams.loop_sigma_trans_m))
         first = np.full(len(landmarks), n_kf)
         np.minimum.at(first, lm, kf)  # (L,) each landmark's first observing keyframe
         ok = (first < n_kf) & np.isfinite(out_lm).all(axis=1)

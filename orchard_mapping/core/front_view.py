@@ -109,8 +109,8 @@ def front_view_boundary(points_c: np.ndarray, z_plane: float, params: AlignmentP
 
 # --------------------------------------------------------------------------- rigid CPD (2D)
 
-def cpd_rigid_2d(fixed: np.ndarray, moving: np.ndarray, *, with_scale: bool, w: float = 0.3,
-                 iterations: int = 100, tol: float = 1e-6) -> tuple[np.ndarray, np.ndarray, float, float]:
+def cpd_rigid_2d(fixed: np.ndarray, moving: np.ndarray, *, with_scale: bool,
+                 w: float = AlignmentParams.cpd_outlier_weight, iterations: int = AlignmentParams.cpd_iterations, tol: float = 1e-6) -> tuple[np.ndarray, np.ndarray, float, float]:
     """Rigid Coherent Point Drift (Myronenko and Song 2010, Fig. 2): fixed X (N, 2) ~ s R moving + t.
 
     Returns (R (2, 2), t (2,), s, sigma2). Vectorised numpy: MEASURED 4x faster than pycpd on 2000

@@ -134,14 +134,17 @@ Select = Callable[[int, np.ndarray, np.ndarray], "bool | Region"]
 
 
 def fuse_side(frames: Iterable[tuple[np.ndarray, np.ndarray, np.ndarray]], intr: CameraIntrinsics, *,
-              keyframes: Iterable[int] | None = None, neighbours: int = 10, mode: Literal["side", "local"] = "side",
-              voxel_size_m: float = DEFAULT_VOXEL_SIZE_M, sdf_trunc_m: float = DEFAULT_SDF_TRUNC_M,
-              depth_max_m: float = DEFAULT_DEPTH_MAX_M, min_weight: float = DEFAULT_MIN_WEIGHT,
-              rel_tol: float = DEFAULT_REL_TOL, abs_tol_m: float = DEFAULT_ABS_TOL_M,
-              silhouette_tol_m: float = DEFAULT_SILHOUETTE_TOL_M, float_radius_m: float = DEFAULT_FLOAT_RADIUS_M,
-              float_min_neighbours: int = DEFAULT_FLOAT_MIN_NEIGHBOURS, fused_spacing_m: float = 0.0,
-              cleaned_spacing_m: float = 0.0, clean_after_m: float = DEFAULT_CLEAN_AFTER_M,
-              clean_batch_m: float = DEFAULT_CLEAN_BATCH_M, keep_color: bool = False,
+              keyframes: Iterable[int] | None = None, neighbours: int = FusionParams.neighbours,
+              mode: Literal["side", "local"] = FusionParams.mode, voxel_size_m: float = FusionParams.voxel_size_m,
+              sdf_trunc_m: float = FusionParams.sdf_trunc_m, depth_max_m: float = FusionParams.depth_max_m,
+              min_weight: float = FusionParams.min_weight, rel_tol: float = FusionParams.rel_tol,
+              abs_tol_m: float = FusionParams.abs_tol_m, silhouette_tol_m: float = FusionParams.silhouette_tol_m,
+              float_radius_m: float = FusionParams.float_radius_m,
+              float_min_neighbours: int = FusionParams.float_min_neighbours,
+              fused_spacing_m: float = FusionParams.fused_spacing_m,
+              cleaned_spacing_m: float = FusionParams.cleaned_spacing_m,
+              clean_after_m: float = FusionParams.clean_after_m, clean_batch_m: float = FusionParams.clean_batch_m,
+              keep_color: bool = False,
               on_cleaned: OnCleaned | None = None, select: Select | None = None) -> FusionResult:
     """Fuse one side's frames (depth (H, W) m, colour (H, W, 3) uint8, T_odom_cam (4, 4)) and clean keyframe depth.
 

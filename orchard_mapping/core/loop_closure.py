@@ -31,7 +31,7 @@ from scipy.spatial import cKDTree
 
 from orchard_mapping.core.bag_of_words import BinaryVocabulary, bow_vectors, score_matrix
 from orchard_mapping.core.keyframe_features import DESCRIPTOR_BYTES
-from orchard_mapping.core.loop_verification import PairVerifier
+from orchard_mapping.core.loop_verification import MIN_INLIERS, PairVerifier
 from orchard_mapping.core.sidemap import Keyframe, LoopClosure
 from orchard_mapping.core.types import CameraIntrinsics
 
@@ -59,7 +59,7 @@ class LoopParams:
     __pydantic_config__ = {"extra": "forbid"}  # config files: unknown keys are errors
 
     enabled: bool = True
-    min_inliers: int = 100  # verified matches a loop needs (the paper's 100)
+    min_inliers: int = MIN_INLIERS  # verified matches a loop needs (the paper's 100)
     min_score: float = 0.05  # bag-of-words score a candidate needs
     max_candidates: int = 3  # verified per query keyframe
     min_gap_s: float = 3.0  # keyframes closer in time are not loop candidates
@@ -107,11 +107,11 @@ class LoopDetector:
         branching: int = 10,
         depth: int = 4,
         max_train_descriptors: int = 20000,
-        min_score: float = 0.05,
+        min_score: float = LoopParams.min_score,
         relative_score: float = 0.8,
-        max_candidates: int = 3,
+        max_candidates: int = LoopParams.max_candidates,
         min_id_gap: int = 5,
-        min_gap_s: float = 3.0,
+        min_gap_s: float = LoopParams.min_gap_s,
         max_view_distance_m: float | None = None,
         view_depth_m: float = 1.3,
         verifier: PairVerifier | None = None,

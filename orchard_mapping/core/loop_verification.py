@@ -23,6 +23,8 @@ from orchard_mapping.core.types import CameraIntrinsics
 # Geometric verification
 # ---------------------------------------------------------------------------------------------------------------------
 
+MIN_INLIERS = 100  # good matches a loop needs, as in the paper (PairVerifier's and config `loop.min_inliers`' default)
+
 
 @dataclass(frozen=True)
 class Verification:
@@ -59,7 +61,7 @@ class PairVerifier:
     """
 
     intrinsics: CameraIntrinsics
-    min_inliers: int = 100  # good matches, as in the paper
+    min_inliers: int = MIN_INLIERS
     min_inlier_ratio: float = 0.3  # good matches / ratio-test matches
     ratio: float = 0.8  # Lowe ratio on Hamming distances
     max_hamming: int = 80  # bits of 256

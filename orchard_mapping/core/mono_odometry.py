@@ -108,6 +108,11 @@ class MonoParams:
     # them), and the relocalised seventh has 38 tracks, too few to track back from; from the re-entry
     # keyframe's hundreds of tracks every one is placed. At most this many frames are kept.
     backtrack_max_frames: int = 60
+    # The front end's own small bundle adjustments (the initial refinement, the re-entry after a loss), not the
+    # side's (config section `ba`): a few keyframes each, converged tightly, every observation kept.
+    ba_iterations: int = 20
+    ba_relative_error_tol: float = 1e-5
+    ba_max_track: int = 0
 
 
 def triangulate(T_a: np.ndarray, xa: np.ndarray, T_b: np.ndarray, xb: np.ndarray) -> np.ndarray:
@@ -278,7 +283,8 @@ class RGBFrontEnd(MonoRelocalisation, RGBDFrontEnd):
         obs = Observations(np.repeat(np.arange(len(uvs)), n), np.tile(np.arange(n), len(uvs)), np.vstack(uvs),
                            np.zeros(n * len(uvs)))
         try:
-            ba = bundle_adjust(np.array(poses), X[idx], obs, self.K, mode="rgb", max_iterations=20)
+            ba = bundle_adjust(np.array(poses), X[idx], obs, self.K, mode="rgb", max_iterations=self.m.ba_iterations,
+                               relative_error_tol=self.m.ba_relative_error_tol, max_track=self.m.ba_max_track)
         except ReconstructionError as e:  # keep the two-view estimate
             self.events.append(f"initial refinement failed ({e}); using the two-view estimate")
             return T1, X

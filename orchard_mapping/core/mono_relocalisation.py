@@ -38,7 +38,8 @@ class MonoRelocalisation:
         obs = Observations(kf_all[sel] - first, inv, uv_all[sel], np.zeros(int(sel.sum())))
         old = np.array([k.T_odom_cam for k in self.keyframes[first:]])
         try:
-            ba = bundle_adjust(old, self.landmarks[lm_ids], obs, self.K, mode="rgb", max_iterations=20,
+            ba = bundle_adjust(old, self.landmarks[lm_ids], obs, self.K, mode="rgb", max_iterations=self.m.ba_iterations,
+                               relative_error_tol=self.m.ba_relative_error_tol, max_track=self.m.ba_max_track,
                                scale_anchor=rec - 1 - first)
         except ReconstructionError as e:
             self.events.append(f"re-entry bundle adjustment failed ({e}); keeping the tracked poses")

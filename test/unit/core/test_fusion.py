@@ -38,6 +38,10 @@ BAD_M = 0.05  # a depth pixel is "bad" when it is more than 5 cm off the noise-f
 EVAL_MAX_M = 2.0
 FLOATING_M = 0.03  # a point is "floating" when it is more than 3 cm from every true surface
 
+# fuse_side's spacings default to the config's (fusion.fused_spacing_m, cleaned_spacing_m); these tests fuse and
+# clean every frame they pass.
+EVERY_FRAME = dict(fused_spacing_m=0.0, cleaned_spacing_m=0.0)
+
 
 @dataclass
 class Row:
@@ -90,7 +94,8 @@ def row(seed_offset) -> Row:
     surfaces = o3d.t.geometry.RaycastingScene()
     surfaces.add_triangles(scene.vertices.astype(np.float32), scene.triangles.astype(np.uint32))
     keyframes = list(range(2, len(poses), 4))
-    result = fuse_side([(d, col, T) for (d, col), T in zip(noisy, poses, strict=True)], intr, keyframes=keyframes)
+    result = fuse_side([(d, col, T) for (d, col), T in zip(noisy, poses, strict=True)], intr, keyframes=keyframes,
+                       **EVERY_FRAME)
     print(f"\nfuse_side: {len(poses)} frames {intr.width}x{intr.height}, TSDF integration "
           f"{1000 * result.seconds_per_frame:.1f} ms/frame, whole call {result.seconds_total:.2f} s "
           f"({len(keyframes)} keyframes cleaned)")
@@ -332,7 +337,7 @@ def test_bad_input_raises_fusion_error():
 def test_fuse_side_local_mode_runs_on_a_few_frames(row):
     """The paper's variant (a grid of the nearest frames per keyframe) on a short stretch."""
     frames = row.frames()[8:14]
-    res = fuse_side(frames, row.intr, keyframes=[2], neighbours=4, mode="local")
+    res = fuse_side(frames, row.intr, keyframes=[2], neighbours=4, mode="local", **EVERY_FRAME)
     assert res.mode == "local" and list(res.cleaned_depth) == [2]
     bad, good = _bad_good(row.noisy[10][0], row.truth_depth[10])
     kept = res.cleaned_depth[2] > 0
@@ -345,7 +350,7 @@ def test_moving_volume_frees_what_the_camera_left_behind(row, accuracy):
     reach extracted and freed) holds fewer blocks than one volume of the whole row and gives the same cloud
     and cleaned depth: each freed block's surface is final when it is freed. Depth is fused to 1.5 m here
     (a camera's reach ~1.7 m) so that the ~9 m of fused row hold several windows."""
-    kw = dict(keyframes=row.keyframes, depth_max_m=1.5)
+    kw = dict(keyframes=row.keyframes, depth_max_m=1.5, **EVERY_FRAME)
     whole = fuse_side(row.frames(), row.intr, clean_after_m=100.0, clean_batch_m=100.0, **kw)  # one volume
     got: list[tuple[int, np.ndarray]] = []
     res = fuse_side(row.frames(), row.intr, clean_after_m=0.5, clean_batch_m=0.25,
@@ -367,7 +372,7 @@ def test_moving_volume_frees_what_the_camera_left_behind(row, accuracy):
 def test_volume_moves_on_where_no_keyframe_is_cleaned(row, accuracy):
     """A stretch with nothing to clean (no trunk detected: `select` refuses every keyframe) still retires
     the blocks the camera left behind: the volume's size does not grow with the stretch's length."""
-    kw = dict(keyframes=row.keyframes, depth_max_m=1.5, clean_after_m=0.5, clean_batch_m=0.25)
+    kw = dict(keyframes=row.keyframes, depth_max_m=1.5, clean_after_m=0.5, clean_batch_m=0.25, **EVERY_FRAME)
     whole = fuse_side(row.frames(), row.intr, **{**kw, "clean_after_m": 100.0, "clean_batch_m": 100.0})
     res = fuse_side(row.frames(), row.intr, select=lambda k, color, depth: False, **kw)
     assert not res.cleaned_depth and res.blocks_retired > 0
@@ -381,7 +386,7 @@ def test_a_region_is_cleaned_as_the_whole_frame_is(row):
     detections): inside it the cleaned depth is the whole frame's, pixel for pixel; outside it is left out."""
     H, W = row.intr.height, row.intr.width
     region = (H // 8, W // 3, H, W // 3 + W // 5)  # (r0, c0, r1, c1): a strip down to the bottom, as a trunk's
-    kw = dict(keyframes=row.keyframes[2:6])
+    kw = dict(keyframes=row.keyframes[2:6], **EVERY_FRAME)
     whole = fuse_side(row.frames(), row.intr, **kw)
     part = fuse_side(row.frames(), row.intr, select=lambda k, color, depth: region, **kw)
     assert sorted(part.cleaned_depth) == sorted(whole.cleaned_depth) == row.keyframes[2:6]
@@ -405,17 +410,17 @@ def test_select_is_asked_about_every_keyframe_whatever_the_cleaning_spacing(row)
         asked.append(k)
         return k % 2 == 1  # every other keyframe, as a detector spaced otherwise would
 
-    res = fuse_side(row.frames(), row.intr, keyframes=row.keyframes, cleaned_spacing_m=10.0, select=select)
+    res = fuse_side(row.frames(), row.intr, keyframes=row.keyframes, fused_spacing_m=0.0, cleaned_spacing_m=10.0, select=select)
     assert asked == row.keyframes
     assert sorted(res.cleaned_depth) == [k for k in row.keyframes if k % 2 == 1]
-    thinned = fuse_side(row.frames(), row.intr, keyframes=row.keyframes, cleaned_spacing_m=10.0)
+    thinned = fuse_side(row.frames(), row.intr, keyframes=row.keyframes, fused_spacing_m=0.0, cleaned_spacing_m=10.0)
     assert sorted(thinned.cleaned_depth) == row.keyframes[:1]  # without a select the spacing still applies
 
 
 def test_the_same_frames_give_the_same_cloud(row):
     """Open3D extracts surface points in parallel, in an order that changes from run to run; the cloud comes
     back sorted, so the trunks fitted to it (RANSAC draws points by index) do not change between runs."""
-    kw = dict(keyframes=row.keyframes[:3], depth_max_m=1.5, clean_after_m=0.5, clean_batch_m=0.25)
+    kw = dict(keyframes=row.keyframes[:3], depth_max_m=1.5, clean_after_m=0.5, clean_batch_m=0.25, **EVERY_FRAME)
     a = fuse_side(row.frames(), row.intr, **kw)
     b = fuse_side(row.frames(), row.intr, **kw)
     assert len(a.points) > 10_000
