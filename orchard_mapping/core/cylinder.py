@@ -130,11 +130,6 @@ def tilt_shift_jacobian(rel: np.ndarray, h: np.ndarray, u: np.ndarray, axis: np.
     return J
 
 
-def _orient(axis: np.ndarray, up: np.ndarray | None) -> np.ndarray:
-    axis = axis / np.linalg.norm(axis)
-    return -axis if up is not None and axis @ up < 0 else axis
-
-
 def cylinder_from_oriented_points(p: np.ndarray, n: np.ndarray, up: np.ndarray | None = None) -> Cylinder | None:
     """The cylinder through two points p (2, 3) with surface normals n (2, 3); None if degenerate."""
     axes, centres, radii, ok = _cylinders_from_oriented_pairs(p[None], n[None], up)

@@ -33,7 +33,6 @@ from __future__ import annotations
 
 import itertools
 import logging
-from collections.abc import Iterable
 from dataclasses import dataclass
 
 import cv2
@@ -583,13 +582,3 @@ class RGBDFrontEnd:
             observations=Observations(kf.astype(np.int64), lm.astype(np.int64), uv, z),
             frame_stamps=np.array(self.stamps), frame_poses=np.array(self.poses).reshape(-1, 4, 4),
             events=list(self.events))
-
-
-def run_front_end(frames: Iterable[RGBDFrame], intr: CameraIntrinsics,
-                  params: FrontEndParams = FrontEndParams()) -> FrontEndResult:
-    fe = RGBDFrontEnd(intr, params)
-    for frame in frames:
-        fe.track(frame)
-    for e in fe.events:
-        log.warning(e)
-    return fe.result()
