@@ -112,7 +112,7 @@ class LoopDetector:
         max_candidates: int = LoopParams.max_candidates,
         min_id_gap: int = 5,
         min_gap_s: float = LoopParams.min_gap_s,
-        max_view_distance_m: float | None = None,
+        max_view_distance_m: float | None = LoopParams.max_view_distance_m,  # None: no view-distance gate
         view_depth_m: float = 1.3,
         verifier: PairVerifier | None = None,
         seed: int = 0,

@@ -10,7 +10,8 @@ from dataclasses import dataclass, replace
 import numpy as np
 
 from orchard_mapping.config import OrchardConfig
-from orchard_mapping.core.alignment import AlignmentSide, SideAlignment, align_sides, icp_merge, pair_trunks
+from orchard_mapping.core.alignment import align_sides, icp_merge, pair_trunks
+from orchard_mapping.core.alignment_types import AlignmentSide, SideAlignment
 from orchard_mapping.core.geometry import SlabIndex, move_with_keyframes
 from orchard_mapping.core.merge import HeightPrior, InitialTransform, SemanticPair, initial_transform
 from orchard_mapping.core.posts import post_shapes

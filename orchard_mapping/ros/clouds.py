@@ -8,7 +8,7 @@ from sensor_msgs.msg import PointCloud2, PointField
 
 from orchard_mapping.ros.messages import stamp_header
 
-__all__ = ["cloud_from_msg", "cloud_to_msg"]
+__all__ = ["cloud_to_msg"]
 
 _DTYPE = np.dtype([("x", "<f4"), ("y", "<f4"), ("z", "<f4"), ("rgb", "<u4")])  # 16 B per point
 
@@ -30,15 +30,3 @@ def cloud_to_msg(points: np.ndarray, colors: np.ndarray, frame_id: str, stamp: f
     msg.is_dense = True
     msg.data = data.tobytes()
     return msg
-
-
-def cloud_from_msg(msg) -> tuple[np.ndarray, np.ndarray]:
-    """(points (P, 3) float32, colors (P, 3) uint8) of a cloud written by `cloud_to_msg`."""
-    names = [f.name for f in msg.fields]
-    if names[:4] != ["x", "y", "z", "rgb"] or msg.point_step != _DTYPE.itemsize:
-        raise ValueError(f"expected fields x y z rgb with a 16-byte point, got {names} and {msg.point_step} B")
-    data = np.frombuffer(memoryview(msg.data), _DTYPE, count=msg.width * msg.height)
-    pts = np.stack([data["x"], data["y"], data["z"]], axis=1)
-    rgb = data["rgb"]
-    col = np.stack([(rgb >> 16) & 255, (rgb >> 8) & 255, rgb & 255], axis=1).astype(np.uint8)
-    return pts, col

@@ -30,15 +30,11 @@ from dataclasses import dataclass, field
 from orchard_mapping.errors import OrchardMappingError
 from orchard_mapping.resources import config_dir
 
-__all__ = ["GraphFailed", "NodeSpec", "Supervisor", "graph_environment"]
+__all__ = ["NodeSpec", "Supervisor", "graph_environment"]
 
 log = logging.getLogger(__name__)
 
 FASTDDS_PROFILE = "fastdds_large_messages.xml"  # in config/: a 64 MB shared-memory segment (docs/ros.md)
-
-
-class GraphFailed(OrchardMappingError):
-    """A node of the graph died and may not be restarted."""
 
 
 @dataclass(frozen=True)
