@@ -27,7 +27,8 @@ import cv2
 import numpy as np
 
 from orchard_mapping.config import TopicsConfig
-from orchard_mapping.io.bags import BagWriter, describe_bag, read_rgbd
+from orchard_mapping.io.bag_writer import BagWriter
+from orchard_mapping.io.bags import describe_bag, read_rgbd
 from orchard_mapping.sim.render import Renderer, SensorModel
 from orchard_mapping.sim.scenario import load_scenario
 from orchard_mapping.sim.scene import build_scene

@@ -23,7 +23,7 @@ from rclpy.qos import DurabilityPolicy, QoSProfile, ReliabilityPolicy
 from rclpy.utilities import remove_ros_args
 
 from orchard_mapping.errors import BagError
-from orchard_mapping.io.bags import BagWriter
+from orchard_mapping.io.bag_writer import BagWriter
 from orchard_mapping.ros.player import message_class
 from orchard_mapping.ros.spin import run_node
 

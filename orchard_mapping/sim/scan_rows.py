@@ -28,7 +28,7 @@ from scipy.spatial.transform import Rotation
 
 from orchard_mapping.config import TopicsConfig
 from orchard_mapping.core.types import CameraIntrinsics
-from orchard_mapping.io.bags import BagWriter
+from orchard_mapping.io.bag_writer import BagWriter
 from orchard_mapping.io.results import atomic_write_text
 from orchard_mapping.sim.scan_row_scene import (
     GROUND_CELL_M,

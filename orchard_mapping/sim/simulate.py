@@ -22,7 +22,7 @@ from scipy.spatial.transform import Rotation
 from orchard_mapping.config import TopicsConfig
 from orchard_mapping.core.types import CameraIntrinsics
 from orchard_mapping.errors import ScenarioError
-from orchard_mapping.io.bags import BagWriter
+from orchard_mapping.io.bag_writer import BagWriter
 from orchard_mapping.io.results import atomic_write_text
 from orchard_mapping.sim.render import Renderer, RenderOutput, SensorModel
 from orchard_mapping.sim.scenario import Scenario

@@ -28,7 +28,8 @@ from orchard_mapping.errors import AlignmentError, BagError, BagFormatError
 from orchard_mapping.eval import evaluate_result
 from orchard_mapping.eval.ground_truth import load_ground_truth
 from orchard_mapping.eval.metrics import TrajectoryError, trajectory_error
-from orchard_mapping.io.bags import BagWriter, read_rgbd
+from orchard_mapping.io.bag_writer import BagWriter
+from orchard_mapping.io.bags import read_rgbd
 from orchard_mapping.io.landmarks import read_trunks
 from orchard_mapping.io.results import read_trees, read_tum
 from orchard_mapping.io.sidemap_codec import decode_side_map, encode_side_map

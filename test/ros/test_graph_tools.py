@@ -17,7 +17,8 @@ import pytest
 pytest.importorskip("rclpy")
 
 from orchard_mapping.core.types import CameraIntrinsics  # noqa: E402
-from orchard_mapping.io.bags import BagWriter, iter_messages, iter_raw, read_rgbd  # noqa: E402
+from orchard_mapping.io.bag_writer import BagWriter
+from orchard_mapping.io.bags import iter_messages, iter_raw, read_rgbd  # noqa: E402
 from orchard_mapping.ros.supervisor import NodeSpec, Supervisor  # noqa: E402
 
 COLOR = "/camera/color/image_raw"

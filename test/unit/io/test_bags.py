@@ -23,7 +23,8 @@ from orchard_mapping.errors import (
     EmptyBagError,
     MissingTopicError,
 )
-from orchard_mapping.io.bags import BagWriter, describe_bag, iter_messages, msg_header, read_rgbd
+from orchard_mapping.io.bag_writer import BagWriter, msg_header
+from orchard_mapping.io.bags import describe_bag, iter_messages, read_rgbd
 from orchard_mapping.io.typesys import typestore
 
 T = TopicsConfig()
