@@ -22,6 +22,7 @@ from pathlib import Path
 
 import numpy as np
 
+from orchard_mapping.io.results import portable_json
 from orchard_mapping.resources import config_dir
 
 CHILD = r"""
@@ -126,7 +127,7 @@ def main() -> None:
             if "rror" in r["stderr"]:
                 print("  stderr:", r["stderr"].strip().replace("\n", " | ")[:300])
     if args.json:
-        args.json.write_text(json.dumps(rows, indent=1))
+        args.json.write_text(portable_json(rows, indent=1))
 
 
 if __name__ == "__main__":

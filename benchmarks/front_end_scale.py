@@ -40,6 +40,7 @@ from orchard_mapping.core.types import StampedTrajectory  # noqa: E402
 from orchard_mapping.eval.ground_truth import GroundTruth, load_ground_truth  # noqa: E402
 from orchard_mapping.eval.metrics import trajectory_error  # noqa: E402
 from orchard_mapping.io.bags import read_rgbd  # noqa: E402
+from orchard_mapping.io.results import portable_json
 from orchard_mapping.sim.scenario import load_scenario  # noqa: E402
 from orchard_mapping.sim.simulate import simulate  # noqa: E402
 
@@ -107,7 +108,7 @@ def main() -> None:
                       f"{np.mean([r['ate_mm'] for r in sel]):.1f}", "")
     Console().print(table)
     if args.json:
-        args.json.write_text(json.dumps(rows, indent=1))
+        args.json.write_text(portable_json(rows, indent=1))
 
 
 if __name__ == "__main__":

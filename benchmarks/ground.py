@@ -59,6 +59,7 @@ from orchard_mapping.core.types import StampedTrajectory
 from orchard_mapping.eval.ground_truth import load_ground_truth
 from orchard_mapping.eval.landmarks import local_alignment, plane_errors
 from orchard_mapping.io.bags import read_rgbd
+from orchard_mapping.io.results import portable_json
 from orchard_mapping.pipeline import Timings, reconstruct_side
 from orchard_mapping.sim.scenario import load_scenario
 from orchard_mapping.sim.scene import build_scene, terrain_plane
@@ -266,7 +267,7 @@ def main(argv: list[str] | None = None) -> int:
                       f" of the disk (truth), less than the fit's minimum support ({support:.1%}, "
                       f"{load_config().ground.min_support_m2} m^2) on {none_json[sc]['seen_below_min_support']}")
     if args.json:
-        args.json.write_text(json.dumps({"methods": rows, "ground_surface_split": split_json, "no_plane": none_json},
+        args.json.write_text(portable_json({"methods": rows, "ground_surface_split": split_json, "no_plane": none_json},
                                         indent=1))
         console.print(f"wrote {args.json}")
     return 0

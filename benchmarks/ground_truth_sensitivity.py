@@ -14,7 +14,6 @@ than the definition it is scored against.
 from __future__ import annotations
 
 import argparse
-import json
 import sys
 import tempfile
 from pathlib import Path
@@ -29,6 +28,7 @@ from rich.table import Table
 import orchard_mapping.sim.simulate as sim_module
 import orchard_mapping.sim.truth as truth
 from orchard_mapping.eval.landmarks import plane_errors
+from orchard_mapping.io.results import portable_json
 from orchard_mapping.sim.scenario import load_scenario
 
 console = Console()
@@ -108,7 +108,7 @@ def main(argv: list[str] | None = None) -> int:
                       f"{row['median_abs_height_mm']:.1f} / {row['max_abs_height_mm']:.1f}", str(row["beyond_goal"]))
     console.print(table)
     if args.json:
-        args.json.write_text(json.dumps({"scenario": args.scenario, "seed": args.seed, "rows": rows}, indent=1))
+        args.json.write_text(portable_json({"scenario": args.scenario, "seed": args.seed, "rows": rows}, indent=1))
         console.print(f"wrote {args.json}")
     return 0
 

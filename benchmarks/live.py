@@ -31,6 +31,7 @@ from rich.console import Console
 from rich.table import Table
 
 from orchard_mapping.io.bags import iter_messages, iter_raw
+from orchard_mapping.io.results import portable_json
 from orchard_mapping.resources import config_dir
 from scale import simulate_row  # benchmarks/scale.py, beside this file
 
@@ -103,7 +104,7 @@ def main() -> None:
                   f"{r['recording_s']:.1f}", f"{r['wall_s']:.1f}")
     Console(width=200).print(t)
     if args.json:
-        args.json.write_text(json.dumps(rows, indent=1))
+        args.json.write_text(portable_json(rows, indent=1))
 
 
 if __name__ == "__main__":

@@ -46,6 +46,7 @@ from orchard_mapping.core.types import StampedTrajectory  # noqa: E402
 from orchard_mapping.eval.evaluate import trunk_scene_points  # noqa: E402
 from orchard_mapping.eval.ground_truth import load_ground_truth  # noqa: E402
 from orchard_mapping.eval.metrics import map_merge_error, merge_error, rigid_rmse_mm, trajectory_between  # noqa: E402
+from orchard_mapping.io.results import portable_json
 from orchard_mapping.pipeline import Timings, map_poses, merge_sides, open_sides, reconstruct_side, two_side_trees  # noqa: E402
 from orchard_mapping.sim.scenario import load_scenario  # noqa: E402
 from orchard_mapping.sim.simulate import simulate  # noqa: E402
@@ -310,7 +311,7 @@ def main(argv: list[str] | None = None) -> int:
                           f"{k} {b['steps'][k] / a['steps'][k]:.2f}x" for k in a["steps"] if a["steps"][k] > 0))
     if args.json:
         args.json.parent.mkdir(parents=True, exist_ok=True)
-        args.json.write_text(json.dumps(rows, indent=1))
+        args.json.write_text(portable_json(rows, indent=1))
     return 0
 
 

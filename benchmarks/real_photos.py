@@ -40,6 +40,7 @@ import numpy as np
 
 from orchard_mapping.config import load_config, parse_sets, unflatten
 from orchard_mapping.core.detection import CLASS_POST, CLASS_TRUNK, Detection, OnnxTrunkDetector
+from orchard_mapping.io.results import portable_json
 
 ROOT = Path(__file__).resolve().parents[1]
 DATA = ROOT / "benchmarks" / "data" / "real_photos"
@@ -284,7 +285,7 @@ def main(argv: list[str] | None = None) -> int:
                "iou_threshold": IOU_THRESHOLD, "centre_band": CENTRE_BAND, "min_height": MIN_HEIGHT,
                "sources": results}
         Path(a.json).parent.mkdir(parents=True, exist_ok=True)
-        Path(a.json).write_text(json.dumps(doc, indent=1, default=str))
+        Path(a.json).write_text(portable_json(doc, indent=1, default=str))
         print(f"wrote {a.json}")
     return 0
 

@@ -29,6 +29,8 @@ import time
 from pathlib import Path
 from typing import Any
 
+from orchard_mapping.io.results import portable_json
+
 os.environ.setdefault("ROS_AUTOMATIC_DISCOVERY_RANGE", "LOCALHOST")
 
 import psutil  # noqa: E402
@@ -184,7 +186,7 @@ def main() -> None:
             rows.append(measure(label, code, sim, n, args.workdir))
             if args.json:
                 tmp = args.json.with_suffix(".partial")
-                tmp.write_text(json.dumps(rows, indent=1))
+                tmp.write_text(portable_json(rows, indent=1))
                 tmp.replace(args.json)
     print_table(rows)
 

@@ -37,6 +37,7 @@ from orchard_mapping.core.cylinder import CylinderError  # noqa: E402
 from orchard_mapping.core.geometry import pose_matrices, transform_points  # noqa: E402
 from orchard_mapping.core.silhouette import TangentPlane, cylinder_from_silhouettes, outline_planes  # noqa: E402
 from orchard_mapping.eval.metrics import associate_stamps  # noqa: E402
+from orchard_mapping.io.results import portable_json
 
 
 def _side_rows(sm: Any, gt: Any, side: str, half: float) -> dict[str, Any]:
@@ -117,7 +118,7 @@ def main(argv: list[str] | None = None) -> int:
     if args.json:
         args.json.parent.mkdir(parents=True, exist_ok=True)
         tmp = args.json.with_suffix(".partial")
-        tmp.write_text(json.dumps(rows, indent=1))
+        tmp.write_text(portable_json(rows, indent=1))
         tmp.replace(args.json)
     return 0
 

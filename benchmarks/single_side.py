@@ -61,7 +61,7 @@ from orchard_mapping.eval import evaluate_result
 from orchard_mapping.eval.ground_truth import load_ground_truth
 from orchard_mapping.eval.metrics import associate_stamps, trajectory_error
 from orchard_mapping.io.bags import read_rgbd
-from orchard_mapping.io.results import read_tum
+from orchard_mapping.io.results import portable_json, read_tum
 from orchard_mapping.sim.scenario import load_scenario
 from orchard_mapping.sim.simulate import simulate
 
@@ -382,7 +382,7 @@ def _finished_cases(path: Path, commit: str) -> dict[tuple[str, int, float, int]
 
 def _write_json(path: Path, cases: list[dict[str, Any]]) -> None:
     tmp = path.with_name(path.name + ".tmp")
-    tmp.write_text(json.dumps({"cases": cases}, indent=1))
+    tmp.write_text(portable_json({"cases": cases}, indent=1))
     tmp.replace(path)  # atomic: an interrupted run never leaves half a file
 
 

@@ -28,7 +28,6 @@ e.g. `--set trunks.flip_test=true --set trunks.detect_every_m=0.3`; its results 
 from __future__ import annotations
 
 import argparse
-import json
 import statistics
 import subprocess
 import sys
@@ -48,7 +47,7 @@ from orchard_mapping.eval import evaluate_result
 from orchard_mapping.eval.ground_truth import load_ground_truth
 from orchard_mapping.eval.landmarks import plane_errors, trunk_errors
 from orchard_mapping.io.landmarks import read_grounds, read_trunks
-from orchard_mapping.io.results import read_timings, read_tum, trajectory_filename
+from orchard_mapping.io.results import portable_json, read_timings, read_tum, trajectory_filename
 
 console = Console()
 SIDES = ("front", "back")
@@ -204,7 +203,7 @@ def main(argv: list[str] | None = None) -> int:
                               f"{statistics.median(c['cost_s']['merge']):.1f} s and outputs), with trunks {wm:.1f} s: "
                               f"ratio {wm / wo:.3f}")
     if args.json:
-        args.json.write_text(json.dumps(cases, indent=1))
+        args.json.write_text(portable_json(cases, indent=1))
         console.print(f"wrote {args.json}")
     return 0
 

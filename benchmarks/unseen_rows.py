@@ -29,6 +29,7 @@ from typing import Any
 from rich.console import Console
 from rich.table import Table
 
+from orchard_mapping.io.results import portable_json
 from orchard_mapping.sim.scan_row_scene import ScanRowSpec
 from orchard_mapping.sim.scan_rows import generate_scan_row
 
@@ -164,7 +165,7 @@ def main(argv: list[str] | None = None) -> int:
         f"unseen_rows_{args.trees}trees_{'_'.join(args.motions[:args.rows])}_seed{args.seed}.json")
     path.parent.mkdir(parents=True, exist_ok=True)
     slim = [{k: v for k, v in r.items() if k != "evaluation"} | {"evaluation": r.get("evaluation")} for r in records]
-    path.write_text(json.dumps({"benchmark": "unseen_rows", "args": vars(args), "rows": slim}, indent=1))
+    path.write_text(portable_json({"benchmark": "unseen_rows", "args": vars(args), "rows": slim}, indent=1))
     console.print(f"results: {path}")
     return 0
 

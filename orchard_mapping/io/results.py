@@ -42,6 +42,7 @@ __all__ = [
     "Timings",
     "atomic_write_json",
     "atomic_write_text",
+    "portable_json",
     "staged_folder",
     "load_json",
     "read_side_merge",
@@ -173,6 +174,17 @@ def staged_folder(out: str | Path) -> Iterator[Path]:
         raise
     finally:
         shutil.rmtree(stage, ignore_errors=True)
+
+
+def portable_json(obj: Any, **dumps_kw: Any) -> str:
+    """json.dumps of a benchmark's results without this machine's paths: the system's temporary folder
+    becomes "<tmp>", the home folder "~", and the current folder ".", so a committed results file says
+    what was measured, not where."""
+    text = json.dumps(obj, **dumps_kw)
+    for folder, name in ((Path.cwd(), "."), (Path(tempfile.gettempdir()), "<tmp>"), (Path.home(), "~")):
+        quoted = json.dumps(str(folder))[1:-1]  # as it stands inside a JSON string
+        text = text.replace(f'"{quoted}/', f'"{name}/').replace(f'"{quoted}"', f'"{name}"')
+    return text
 
 
 def atomic_write_json(path: str | Path, obj: Any) -> Path:
