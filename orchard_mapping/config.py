@@ -22,6 +22,7 @@ from orchard_mapping.core.loop_closure import LoopParams
 from orchard_mapping.core.merge import MergeParams
 from orchard_mapping.core.odometry import FrontEndParams
 from orchard_mapping.core.semantic_ba import SemanticBAParams
+from orchard_mapping.core.traits import TraitsParams
 from orchard_mapping.core.trunks import TrunkParams
 from orchard_mapping.errors import ConfigError
 from orchard_mapping.resources import config_dir
@@ -83,6 +84,7 @@ class OrchardConfig(_Section):
     alignment: AlignmentParams = AlignmentParams()
     merge: MergeParams = MergeParams()
     semantic_ba: SemanticBAParams = SemanticBAParams()
+    traits: TraitsParams = TraitsParams()
     evaluate: EvaluateConfig = EvaluateConfig()
     seed: int = 0
 

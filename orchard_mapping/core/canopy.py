@@ -18,6 +18,7 @@ from __future__ import annotations
 from dataclasses import dataclass
 
 import numpy as np
+from scipy import ndimage
 from scipy.sparse import coo_matrix
 from scipy.sparse.csgraph import connected_components
 from scipy.spatial import Delaunay, cKDTree
@@ -30,8 +31,10 @@ __all__ = [
     "alpha_complex",
     "alpha_complex_volume",
     "alpha_regions",
+    "canopy_base_height",
     "canopy_volume",
     "height_above_plane",
+    "main_body",
     "tree_height",
     "voxel_downsample",
 ]
@@ -161,6 +164,56 @@ def tree_height(points: np.ndarray, ground_point: np.ndarray, ground_normal: np.
         if n_cand == len(h):
             return float("nan")
         n_cand = min(len(h), 4 * n_cand)
+
+
+def canopy_base_height(points: np.ndarray, ground_point: np.ndarray, ground_normal: np.ndarray, *,
+                       trunk_radius_m: float, body_cell_m: float, off_axis_m: float = 0.05, slice_m: float = 0.02,
+                       min_fraction: float = 0.1, max_gap_slices: int = 2) -> float:
+    """Clear trunk height (m above the local ground): where the canopy begins. The tree's points (N, 3) off
+    its trunk (further than trunk_radius_m + off_axis_m from the axis: the line through ground_point (3,)
+    along the unit-up ground_normal (3,)), of their main body (cells of body_cell_m), counted in slices of slice_m; from the fullest slice down, the
+    canopy goes on while slices hold at least min_fraction of the median occupied slice's count (gaps of up to
+    max_gap_slices allowed). NaN without off-axis points.
+
+    Why not the trunk's own length: the detector's trunk goes on up the leader between the leaves, 0.1-0.5 m
+    above where the branches begin (10-tree standard row: 0.76-1.10 m against 0.57-0.72 m true)."""
+    h = height_above_plane(points, ground_point, ground_normal)  # (N,)
+    n = _unit(ground_normal, "ground normal")
+    d = np.asarray(points, float) - np.asarray(ground_point, float).reshape(3)
+    off = np.linalg.norm(d - h[:, None] * n, axis=1)  # (N,) m from the trunk axis
+    away = (off > trunk_radius_m + off_axis_m) & (h > 0)
+    if not away.any():
+        return float("nan")
+    # the crown's own body: weeds and grass under it touch it only through the trunk, which is left out here
+    hc = h[away][main_body(np.asarray(points, float)[away], body_cell_m)]
+    counts = np.bincount(np.floor(hc / slice_m).astype(np.int64))  # (S,) per slice, from the ground up
+    thr = min_fraction * float(np.median(counts[counts > 0]))
+    full = counts >= max(thr, 1.0)
+    start = int(np.argmax(counts))  # the fullest slice: inside the canopy whatever its top looks like
+    base, gap = start, 0
+    for s in range(start - 1, -1, -1):
+        if full[s]:
+            base, gap = s, 0
+        else:
+            gap += 1
+            if gap > max_gap_slices:
+                break
+    return base * slice_m
+
+
+def main_body(points: np.ndarray, cell_m: float) -> np.ndarray:
+    """(N,) bool: the points (N, 3) of the largest connected body, cells of cell_m touching by a face, edge
+    or corner. What is left floats apart from the tree: a wire's stub at a post, a neighbour's stray leaf
+    (10-tree standard row: a wire fragment 19 cm above the shortest crown made its height 21 cm too much)."""
+    pts = _check_points(points, "points")
+    if len(pts) == 0:
+        return np.zeros(0, bool)
+    ijk = np.floor((pts - pts.min(axis=0)) / cell_m).astype(np.int64)  # (N, 3)
+    grid = np.zeros(tuple(ijk.max(axis=0) + 1), bool)
+    grid[ijk[:, 0], ijk[:, 1], ijk[:, 2]] = True
+    labels, n = ndimage.label(grid, structure=np.ones((3, 3, 3), bool))
+    lab = labels[ijk[:, 0], ijk[:, 1], ijk[:, 2]]  # (N,) >= 1
+    return lab == np.argmax(np.bincount(lab))
 
 
 def canopy_volume(points: np.ndarray, ground_point: np.ndarray, ground_normal: np.ndarray, *,

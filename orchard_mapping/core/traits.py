@@ -11,17 +11,26 @@ from typing import Literal
 
 import numpy as np
 
-from orchard_mapping.core.canopy import canopy_volume, tree_height, voxel_downsample
+from orchard_mapping.core.canopy import (
+    alpha_complex_volume,
+    canopy_base_height,
+    height_above_plane,
+    main_body,
+    tree_height,
+    voxel_downsample,
+)
 from orchard_mapping.core.segmentation import (
     cutting_plane_segmentation,
     ground_and_post_masks,
+    height_above_grounds,
+    row_line_mask,
     shrink_and_expand_segmentation,
 )
 from orchard_mapping.errors import OrchardMappingError
 
 __all__ = ["RowTraits", "TraitsError", "TraitsParams", "TreeMorphology", "measure_row"]
 
-KIND_TREE, KIND_GROUND, KIND_POST, KIND_NONE = 0, 1, 2, 3  # per-point class codes of RowTraits.kind
+KIND_TREE, KIND_GROUND, KIND_POST, KIND_NONE, KIND_WIRE = 0, 1, 2, 3, 4  # per-point class codes of RowTraits.kind
 
 
 class TraitsError(OrchardMappingError, ValueError):
@@ -47,6 +56,10 @@ class TraitsParams:
     # tilted ground): the raw maximum is off by > 0.25 m, this within 2 cm. Not yet measured on rendered rows.
     height_support_radius_m: float = 0.03
     height_min_support: int = 3
+    # m, cells of the tree's main body (canopy.main_body): its height is measured on that body only. 5 cm
+    # joins leaves and twigs of one crown (a 2 cm grid split crowns apart), and keeps a wire stub 10 cm off
+    # a crown apart.
+    body_cell_m: float = 0.05
     # m, voxel downsampling of the merged cloud before segmentation and volume (0 = off): the grid step of
     # the segmentation anyway; its effect on the volume is not yet separated from segmentation errors.
     voxel_m: float = 0.02
@@ -64,13 +77,16 @@ class TraitsParams:
     # belong to no tree (canopies reach ~0.6 m; neighbouring rows start ~1.5 m away)
     max_reach_m: float = 1.0
     max_lateral_m: float = 1.2
+    # m, trellis wires are looked for above this (segmentation.row_line_mask): the ground and low weeds form
+    # lines along the row too; trellis wires run at 0.5 m and up (the simulator's at 0.9, 1.5, 2.1 m)
+    wire_min_height_m: float = 0.3
 
     def __post_init__(self) -> None:
-        for name in ("alpha_m", "grid_min_m"):
+        for name in ("alpha_m", "grid_min_m", "body_cell_m"):
             if not getattr(self, name) > 0:
                 raise TraitsError(f"traits.{name} must be > 0, got {getattr(self, name)!r}")
         for name in ("ground_margin_m", "post_margin_m", "height_support_radius_m", "voxel_m", "max_reach_m",
-                     "max_lateral_m"):
+                     "max_lateral_m", "wire_min_height_m"):
             if not getattr(self, name) >= 0:
                 raise TraitsError(f"traits.{name} must be >= 0, got {getattr(self, name)!r}")
         if self.height_min_support < 0 or self.close_voxels < 0:
@@ -88,24 +104,26 @@ class TreeMorphology:
     height_m: float  # m, local ground to top along the ground normal; nan without points
     canopy_volume_m3: float  # m^3, alpha-complex volume above the clear trunk
     n_points: int  # points of the tree (input cloud)
+    clear_height_m: float  # m, where its canopy begins (given, or from its points); nan unknown
     separated: bool  # shrink-and-expand split both neighbouring pairs (True for cutting planes)
 
 
 @dataclass(frozen=True)
 class RowTraits:
     tree: np.ndarray  # (N,) int, tree index of each input point, -1 none (ground, post, out of reach)
-    kind: np.ndarray  # (N,) int8, KIND_TREE / KIND_GROUND / KIND_POST / KIND_NONE
+    kind: np.ndarray  # (N,) int8, KIND_TREE / KIND_GROUND / KIND_POST / KIND_WIRE / KIND_NONE
     trees: tuple[TreeMorphology, ...]
 
 
 def measure_row(points: np.ndarray, trunk_positions: np.ndarray, ground_points: np.ndarray,
                 ground_normals: np.ndarray, clear_heights: np.ndarray, row_direction: np.ndarray,
                 params: TraitsParams, *, post_points: np.ndarray | None = None,
-                post_radius_m: float = 0.0) -> RowTraits:
+                post_radius_m: float = 0.0, trunk_radii: np.ndarray | None = None) -> RowTraits:
     """Traits of every tree of a merged row: points (N, 3); per tree (T): trunk_positions (T, 3) where the
     trunk axis meets the local ground, the local ground planes (ground_points (T, 3), unit-up
-    ground_normals (T, 3)), clear trunk heights (T,) m; the row direction (3,); vertical posts standing on
-    post_points (P, 3) with radius post_radius_m."""
+    ground_normals (T, 3)), clear trunk heights (T,) m (NaN: where the tree's own points say the canopy
+    begins, core.canopy.canopy_base_height, off its trunk of radius trunk_radii (T,) m); the row direction
+    (3,); vertical posts standing on post_points (P, 3) with radius post_radius_m."""
     pts = np.asarray(points, float)
     tr = np.asarray(trunk_positions, float).reshape(-1, 3)
     gp = np.asarray(ground_points, float).reshape(-1, 3)
@@ -120,7 +138,14 @@ def measure_row(points: np.ndarray, trunk_positions: np.ndarray, ground_points: 
     ground, post = ground_and_post_masks(cen, cut, gp, gn, ground_margin_m=params.ground_margin_m,
                                          post_points=post_points, post_radius_m=post_radius_m,
                                          post_margin_m=params.post_margin_m)
-    keep = np.flatnonzero(~ground & ~post)
+    # the trellis wires: lines along the row at one height and depth (in a frame of the row: x along, z up)
+    x = np.asarray(row_direction, float) - (np.asarray(row_direction, float) @ up) * up / (up @ up)
+    z = up / np.linalg.norm(up)
+    x = x / np.linalg.norm(x)
+    to_row = np.stack([x, np.cross(z, x), z])  # (3, 3)
+    wire = row_line_mask(cen @ to_row.T, height_above_grounds(cen, cut, gp, gn),
+                         min_height_m=params.wire_min_height_m) & ~ground & ~post
+    keep = np.flatnonzero(~ground & ~post & ~wire)
     tree_v = np.full(len(cen), -1)
     separated = np.ones(max(len(tr) - 1, 0), bool)
     if params.segmentation == "shrink_and_expand" and len(tr) > 1:
@@ -137,16 +162,25 @@ def measure_row(points: np.ndarray, trunk_positions: np.ndarray, ground_points: 
         tree_v[keep] = cutting_plane_segmentation(cen[keep], tr, row_direction, up=up,
                                                   max_reach_m=params.max_reach_m, max_lateral_m=params.max_lateral_m)
         rank = np.arange(len(tr))
-    kind_v = np.where(ground, KIND_GROUND, np.where(post, KIND_POST, np.where(tree_v >= 0, KIND_TREE, KIND_NONE)))
+    kind_v = np.where(ground, KIND_GROUND, np.where(post, KIND_POST, np.where(
+        wire, KIND_WIRE, np.where(tree_v >= 0, KIND_TREE, KIND_NONE))))
     tree = tree_v[inv]
     out = []
     for t in range(len(tr)):
         mine = tree == t
         n_pts = int(mine.sum())
-        h = tree_height(pts[mine], gp[t], gn[t], support_radius_m=params.height_support_radius_m,
+        body = pts[mine][main_body(pts[mine], params.body_cell_m)] if n_pts else pts[:0]
+        h = tree_height(body, gp[t], gn[t], support_radius_m=params.height_support_radius_m,
                         min_support=params.height_min_support) if n_pts else float("nan")
-        v = canopy_volume(cen[tree_v == t], gp[t], gn[t], clear_trunk_height_m=float(clear[t]), alpha_m=params.alpha_m)
-        r = rank[t]
-        sep = bool((r == 0 or separated[r - 1]) and (r == len(tr) - 1 or separated[r]))
-        out.append(TreeMorphology(t, h, v, n_pts, sep))
+        c = float(clear[t])
+        if not np.isfinite(c) and n_pts:
+            r = float(trunk_radii[t]) if trunk_radii is not None else 0.0
+            c = canopy_base_height(cen[tree_v == t], gp[t], gn[t], trunk_radius_m=r, body_cell_m=params.body_cell_m)
+        crown = cen[tree_v == t]
+        crown = crown[height_above_plane(crown, gp[t], gn[t]) > c] if np.isfinite(c) else crown[:0]
+        v = (alpha_complex_volume(crown[main_body(crown, params.body_cell_m)], params.alpha_m)
+             if len(crown) else float("nan"))
+        k = rank[t]
+        sep = bool((k == 0 or separated[k - 1]) and (k == len(tr) - 1 or separated[k]))
+        out.append(TreeMorphology(t, h, v, n_pts, c, sep))
     return RowTraits(tree, kind_v[inv].astype(np.int8), tuple(out))

@@ -1,7 +1,7 @@
 """trees.laz: the merged cloud, each point classified and given its tree, as ASPRS LAS 1.4 (LAZ-compressed).
 
 Point format 7 (x y z, RGB), ASPRS classes where one fits (1 unclassified, 2 ground, 5 high vegetation for
-the canopy) and the project's own codes in the user range (64-255) for what ASPRS has no class for: trunk,
+the canopy, 14 wire for the trellis wires) and the project's own codes in the user range (64-255) for what ASPRS has no class for: trunk,
 post, fruit (CLASS below; docs/results.md). Two extra dimensions: `tree_id` (int32, -1: no tree) and `side`
 (uint8, 0 front, 1 back: the side whose camera saw the point). Coordinates are the map frame of
 trees.json (m; the front side's odom frame): a local frame with no CRS, named in the header's system
@@ -21,7 +21,7 @@ from orchard_mapping.errors import OrchardMappingError
 __all__ = ["CLASS", "LAZ_SCALE_M", "SIDE_CODE", "read_laz", "write_laz"]
 
 # per-point class codes: ASPRS LAS 1.4 where it has one, the user range (64-255) for the orchard's own
-CLASS = {"none": 1, "ground": 2, "canopy": 5, "trunk": 64, "post": 65, "fruit": 66}
+CLASS = {"none": 1, "ground": 2, "canopy": 5, "wire": 14, "trunk": 64, "post": 65, "fruit": 66}
 SIDE_CODE = {"front": 0, "back": 1}
 LAZ_SCALE_M = 1e-4  # m per coordinate unit: 0.1 mm, far below the depth noise (mm at 1 m)
 SYSTEM_ID = "orchard_mapping map (local)"  # 32 bytes at most: the header's system identifier

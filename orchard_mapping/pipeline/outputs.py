@@ -16,6 +16,7 @@ from orchard_mapping.core.sidemap import SideMap
 from orchard_mapping.core.types import StampedTrajectory
 from orchard_mapping.io.figures import RowView, write_row_png
 from orchard_mapping.io.landmarks import GROUNDS_JSON, TRUNKS_JSON, write_grounds, write_trunks
+from orchard_mapping.io.laz import write_laz
 from orchard_mapping.io.results import (
     SIDE_MERGE_JSON,
     TREES_CSV,
@@ -25,12 +26,14 @@ from orchard_mapping.io.results import (
     write_tum,
 )
 from orchard_mapping.pipeline.merge import MergeOutcome, clouds_in_map, map_poses
+from orchard_mapping.pipeline.traits import RowLabels
 
 # What a merge writes into the result folder (docs/results.md).
-MERGED_PLY, ROW_PNG = "merged.ply", "row.png"
+MERGED_PLY, ROW_PNG, TREES_LAZ = "merged.ply", "row.png", "trees.laz"
 
 
-MERGE_OUTPUTS = (SIDE_MERGE_JSON, TREES_JSON, TREES_CSV, map_trajectory_filename("*"), MERGED_PLY, ROW_PNG)
+MERGE_OUTPUTS = (SIDE_MERGE_JSON, TREES_JSON, TREES_CSV, map_trajectory_filename("*"), MERGED_PLY, ROW_PNG,
+                 TREES_LAZ)
 
 
 def write_cloud(path: Path, points: np.ndarray, colors: np.ndarray) -> None:
@@ -131,3 +134,8 @@ def write_merge(out: Path, m: MergeOutcome, sides: dict[str, SideMap],
         after = RowView(f"after: {label}", moved, {
             side: move_with_keyframes(bases[side], own[side], poses[side]) for side in poses})
         write_row_png(out / ROW_PNG, al.front.T_canon_odom, [before, after], seed=0)
+
+
+def write_tree_cloud(out: Path, labels: RowLabels) -> None:
+    """trees.laz: the merged cloud with each point's tree and class (io.laz; docs/results.md)."""
+    write_laz(out / TREES_LAZ, labels.points, labels.colors, labels.classification, labels.tree_id, labels.side)

@@ -14,10 +14,10 @@ from orchard_mapping.config import OrchardConfig, dump_yaml
 from orchard_mapping.core.sidemap import SideMap
 from orchard_mapping.errors import AlignmentError, MergeRefusedError
 from orchard_mapping.io.results import atomic_write_text, staged_folder, write_timings, write_trees
-from orchard_mapping.pipeline.merge import merge_to_trees
-from orchard_mapping.pipeline.outputs import MERGE_OUTPUTS, write_landmarks, write_merge, write_side
+from orchard_mapping.pipeline.outputs import MERGE_OUTPUTS, write_landmarks, write_merge, write_side, write_tree_cloud
 from orchard_mapping.pipeline.side import PendingSide, reconstruct_drive, reconstruct_side_later
 from orchard_mapping.pipeline.sides import DRIVE, Progress, Timings, open_sides, side_mask
+from orchard_mapping.pipeline.traits import merge_and_measure
 from orchard_mapping.pipeline.trunks import TrunkWorker
 
 log = logging.getLogger(__name__)
@@ -96,15 +96,18 @@ def _run(front: Path, back: Path | None, out: Path, cfg: OrchardConfig, progress
             write_landmarks(out, sides, cfg)
             if cfg.merge.method != "off" and set(sides) == {"front", "back"}:
                 t0 = time.perf_counter()
+                traits_s = 0.0
                 try:
-                    merged, clouds, trees = merge_to_trees(sides, cfg, worker)
+                    merged, clouds, trees, labels, traits_s = merge_and_measure(sides, cfg, worker)
                 except AlignmentError as err:
                     log.warning("side merge refused: %s (no side_merge.json written)", err)
                     refused = str(err)
                 else:
                     write_merge(out, merged, sides, clouds)
                     write_trees(out, trees, frame="map")
-                timings.add("merge", time.perf_counter() - t0)
+                    write_tree_cloud(out, labels)
+                timings.add("merge", time.perf_counter() - t0 - traits_s)
+                timings.add("traits", traits_s)
     finally:
         if worker is not None:
             worker.close()

@@ -1,8 +1,8 @@
 """`side_merger`: both sides' maps in, the merged row out (paper: "Merging Two-Sides 3D Reconstruction").
 
-It runs the same core as `orchard-map run` (pipeline.merge_to_trees: initial alignment, initial
-transform, semantic bundle adjustment, two-side trunk diameters) once it holds a map of each side, and
-again whenever a side's map is replaced.
+It runs the same core as `orchard-map run` (pipeline.merge_and_measure: initial alignment, initial
+transform, semantic bundle adjustment, two-side trunk diameters, then each tree's height and canopy volume)
+once it holds a map of each side, and again whenever a side's map is replaced.
 
 In:  `/orchard/<side>/side_map`  orchard_mapping_msgs/SideMap from the odometry node (latched)
 Out (latched, frame `map` = odom_front):
@@ -12,12 +12,13 @@ Out (latched, frame `map` = odom_front):
                                        semantic BA's keyframe poses (tree_id: the tree they belong to)
      /orchard/merged/local_grounds     LocalGroundArray: each side's local grounds, likewise
      /orchard/merged/trees             TreeTraitsArray: the trees of the merge (position, two-side and
-                                       per-side trunk diameters, flags) for the trait reporter
+                                       per-side trunk diameters, height, canopy volume, flags) for the
+                                       trait reporter
      /orchard/side_merger/status       std_msgs/String JSON: merges made, refusals and why, seconds
      /tf_static                        map -> odom_front (identity) and map -> odom_back (the merge's rigid
                                        transform), so RViz shows each side's odom frames in map
-With `out_dir` set, the merge's files (side_merge.json, both trajectories in map, merged.ply, row.png)
-are written there as `orchard-map run` writes them, each file atomically. A refused merge (too few trees
+With `out_dir` set, the merge's files (side_merge.json, both trajectories in map, merged.ply, row.png,
+trees.laz) are written there as `orchard-map run` writes them, each file atomically. A refused merge (too few trees
 seen from both sides, or pairs that disagree) is published in the status and logged; nothing is guessed.
 With `exit_on_refusal` (replaying bags) a refusal also ends the node with exit code 2, which stops the
 graph as `orchard-map run` stops with 2; otherwise the node waits for the next map of either side.
@@ -49,11 +50,13 @@ from orchard_mapping.io.results import staged_folder
 from orchard_mapping.io.sidemap_codec import SIDE_MAP_ENCODING, SideMapFormatError, decode_side_map
 from orchard_mapping.pipeline import (
     MergeOutcome,
+    RowLabels,
     map_poses,
-    merge_to_trees,
+    merge_and_measure,
     ray_in_map,
     tree_of_trunk,
     write_merge,
+    write_tree_cloud,
 )
 from orchard_mapping.ros.clouds import cloud_to_msg
 from orchard_mapping.ros.graph import MERGED_TREES_TOPIC, side_map_topic
@@ -133,7 +136,7 @@ class SideMergerNode(Node):
         cfg = self.params.config
         t0 = time.perf_counter()
         try:
-            merged, clouds, trees = merge_to_trees(self.maps, cfg)
+            merged, clouds, trees, labels, _ = merge_and_measure(self.maps, cfg)
         except AlignmentError as err:
             self.get_logger().error(f"the two sides were not merged: {err}")
             self.refused.append(str(err))
@@ -144,16 +147,17 @@ class SideMergerNode(Node):
         self.merges += 1
         out = self.get_parameter("out_dir").value
         if out:
-            self._write(Path(out), merged, clouds)
+            self._write(Path(out), merged, clouds, labels)
         self._publish(merged, clouds, trees)
         self.get_logger().info(f"merged ({merged.method}) on {len(merged.pairs)} trunk pairs in "
                                f"{self.seconds[-1]:.2f} s: {len(trees)} trees")
 
-    def _write(self, out: Path, merged: MergeOutcome, clouds: dict[str, np.ndarray]) -> None:
+    def _write(self, out: Path, merged: MergeOutcome, clouds: dict[str, np.ndarray], labels: RowLabels) -> None:
         """The merge's files into `out`, each moved in only once all were written (a stop meanwhile leaves
         the earlier set whole), as `orchard-map run` writes its result folder."""
         with staged_folder(out) as stage:
             write_merge(stage, merged, self.maps, clouds)
+            write_tree_cloud(stage, labels)
 
     def _publish(self, merged: MergeOutcome, clouds: dict[str, np.ndarray], trees: list) -> None:
         front, back = self.maps["front"], self.maps["back"]

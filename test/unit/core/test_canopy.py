@@ -113,3 +113,39 @@ def test_tree_height_ignores_flying_points(seed, normal):
     h = tree_height(pts, np.zeros(3), n, support_radius_m=0.03, min_support=3)
     assert abs(h - true) < 0.02
     assert tree_height(pts, np.zeros(3), n, support_radius_m=0.03, min_support=0) > true + 0.25
+
+
+@pytest.mark.parametrize("seed", [0, 1, 2])
+def test_the_canopy_begins_where_the_branches_do_not_at_the_top_of_the_leader(seed):
+    """A trunk (radius 3 cm) rising through the crown to 2.2 m, the crown an ellipsoid shell from 0.7 to
+    2.1 m, grass up to 0.15 m round the foot and a stray leaf cluster at 0.4 m touching nothing: the
+    canopy's base is found within 4 cm of 0.7 m."""
+    from orchard_mapping.core.canopy import canopy_base_height
+
+    rng = np.random.default_rng(seed)
+    z = rng.uniform(0, 2.2, 4000)
+    a = rng.uniform(0, 2 * np.pi, 4000)
+    trunk = np.column_stack([0.03 * np.cos(a), 0.03 * np.sin(a), z])
+    u = rng.normal(size=(20000, 3))
+    u /= np.linalg.norm(u, axis=1, keepdims=True)
+    crown = u * [0.5, 0.45, 0.7] + [0, 0, 1.4]
+    grass = np.column_stack([rng.uniform(-0.6, 0.6, (3000, 2)), rng.uniform(0, 0.15, 3000)])
+    stray = rng.normal([0.3, 0.0, 0.4], 0.01, (30, 3))
+    pts = np.concatenate([trunk, crown, grass, stray])
+    base = canopy_base_height(pts, np.zeros(3), np.array([0, 0, 1.0]), trunk_radius_m=0.03, body_cell_m=0.05)
+    assert abs(base - 0.7) < 0.04, base
+
+
+def test_the_main_body_leaves_a_wire_stub_above_the_crown_out():
+    from orchard_mapping.core.canopy import main_body, tree_height
+
+    rng = np.random.default_rng(0)
+    u = rng.normal(size=(20000, 3))
+    u /= np.linalg.norm(u, axis=1, keepdims=True)
+    crown = u * [0.5, 0.45, 0.6] + [0, 0, 1.4]  # top at 2.0 m
+    stub = np.column_stack([np.arange(-0.4, -0.15, 0.005), np.zeros(50), np.full(50, 2.16)])  # 16 cm above it
+    pts = np.concatenate([crown, stub])
+    body = main_body(pts, 0.05)
+    assert body[:len(crown)].all() and not body[len(crown):].any()
+    h = tree_height(pts[body], np.zeros(3), np.array([0, 0, 1.0]), support_radius_m=0.03, min_support=3)
+    assert abs(h - 2.0) < 0.01

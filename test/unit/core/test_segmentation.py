@@ -59,3 +59,29 @@ def test_ground_and_posts_are_masked_on_a_slope():
     assert np.mean(ground[r.kind == KIND_GROUND]) > 0.97  # the plane is the trunks' local one, ground undulates 0
     assert np.all(post[r.kind == KIND_POST])
     assert np.mean(ground[r.kind == KIND_TREE] | post[r.kind == KIND_TREE]) < 0.02
+
+
+def _wire(rng, x0, x1, height, across, spacing=0.01, noise=0.002):
+    x = np.arange(x0, x1, spacing)
+    return np.column_stack([x, np.full_like(x, across), np.full_like(x, height)]) + rng.normal(0, noise, (len(x), 3))
+
+
+@pytest.mark.parametrize("seed", [0, 1, 2])
+def test_a_trellis_wire_is_found_where_it_shows_and_followed_where_leaves_hide_it(seed):
+    """A wire at 1.5 m seen unbroken between crowns and only in stubs of 10 cm inside them is a wire over its
+    whole length; the crowns' leaves and the flat ground are not."""
+    from orchard_mapping.core.segmentation import row_line_mask
+
+    rng = np.random.default_rng(seed)
+    r = synthetic_row(seed, n_trees=3, spacing_m=1.4, radius_along_m=(0.4, 0.5))
+    open_span = _wire(rng, 0.5, 0.95, 1.5, 0.0)  # between crowns 0 and 1 (trunks at 0, 1.4)
+    stubs = np.concatenate([_wire(rng, x, x + 0.1, 1.5, 0.0) for x in (1.1, 1.35, 1.6)])  # inside crown 1
+    pts = np.concatenate([r.points, open_span, stubs])
+    h = np.concatenate([np.sum((r.points - r.ground_points[0]) * r.ground_normals[0], axis=1),
+                        np.full(len(open_span) + len(stubs), 1.5)])
+    wire = row_line_mask(pts, h, min_height_m=0.3)
+    n = len(r.points)
+    assert wire[n:n + len(open_span)].mean() > 0.95
+    assert wire[n + len(open_span):].mean() > 0.9  # the stubs: within reach of the open span
+    assert wire[:n][r.kind == KIND_TREE].mean() < 0.01  # leaves are not lines along the row
+    assert not wire[:n][r.kind == KIND_GROUND].any()  # below min_height_m

@@ -1,0 +1,164 @@
+"""Tree traits in the merged map (paper: "Measuring Tree Morphology"): each tree's height and canopy volume
+from the merged cloud, and every point of it labelled (tree, class) for trees.laz.
+
+The merge gives each tree its foot in map and, through its trunks, the local ground planes each side fitted
+(carried into map with their keyframes, as the cloud is); the posts each side modelled are cut out. The core
+(core.traits.measure_row) works in a row frame: x along the row, z up the mean local ground normal; map is the
+front camera's optical frame (y down), so the points go into that frame first and only labels and lengths
+come back.
+"""
+
+from __future__ import annotations
+
+import logging
+import time
+from dataclasses import dataclass, replace
+
+import numpy as np
+
+from orchard_mapping.config import OrchardConfig
+from orchard_mapping.core.sidemap import SideMap
+from orchard_mapping.core.traits import KIND_GROUND, KIND_POST, KIND_TREE, KIND_WIRE, RowTraits, measure_row
+from orchard_mapping.core.trees import row_direction
+from orchard_mapping.io.laz import CLASS, SIDE_CODE
+from orchard_mapping.io.results import ResultTree
+from orchard_mapping.pipeline.merge import MergeOutcome, map_poses, merge_to_trees, ray_in_map
+from orchard_mapping.pipeline.trunks import TrunkWorker
+
+__all__ = ["NO_CANOPY_POINTS", "SEGMENTATION_UNCERTAIN", "RowLabels", "merge_and_measure", "measure_trees"]
+
+log = logging.getLogger(__name__)
+
+SEGMENTATION_UNCERTAIN = "segmentation_uncertain"  # a neighbour's canopy could not be split from this one's
+NO_CANOPY_POINTS = "no_canopy_points"  # nothing of the tree above its clear trunk: no height, no volume
+# m beyond the trunk radius a point of the tree below its clear trunk height still counts as trunk (the
+# fused trunk surface scatters ~1 cm; the 3 cm also takes in the bark's relief)
+TRUNK_MARGIN_M = 0.03
+
+
+@dataclass(frozen=True)
+class RowLabels:
+    """Per point of the merged cloud (front side's points, then the back side's, as merged.ply holds them)."""
+
+    points: np.ndarray  # (N, 3) m, map
+    colors: np.ndarray  # (N, 3) uint8
+    side: np.ndarray  # (N,) uint8, SIDE_CODE
+    tree_id: np.ndarray  # (N,) int32, the tree's id in trees.json, -1 none
+    classification: np.ndarray  # (N,) uint8, io.laz.CLASS
+
+
+def _up_in_map(sides: dict[str, SideMap], poses: dict[str, np.ndarray]) -> np.ndarray:
+    """(3,) unit up in map: the mean of the cameras' -y axes (optical frame, y down) of both sides."""
+    up = -np.concatenate([P[:, :3, 1] for P in poses.values()]).mean(axis=0)
+    return up / np.linalg.norm(up)
+
+
+def _tree_grounds(trees: list[ResultTree], sides: dict[str, SideMap], poses: dict[str, np.ndarray],
+                  up: np.ndarray) -> np.ndarray:
+    """(T, 3) unit up normal of each tree's local ground in map: the mean of the planes its sides fitted,
+    carried into map; `up` where no side fitted one."""
+    by = {side: {t.id: t for t in sm.trunks} for side, sm in sides.items()}
+    out = np.tile(up, (len(trees), 1))
+    for k, tree in enumerate(trees):
+        normals = []
+        for side, own in (tree.per_side or {}).items():
+            lm = by.get(side, {}).get(own.get("trunk_id"))
+            if lm is not None and lm.ground is not None:
+                _, n = ray_in_map(lm.ground.point, lm.ground.normal, sides[side], poses[side])
+                normals.append(n if n @ up > 0 else -n)
+        if normals:
+            n = np.mean(normals, axis=0)
+            out[k] = n / np.linalg.norm(n)
+    return out
+
+
+def _posts_in_map(sides: dict[str, SideMap], poses: dict[str, np.ndarray]) -> tuple[np.ndarray, float]:
+    """((P, 3) a point on each post's axis in map, the widest post radius m) of the posts both sides modelled."""
+    places, radii = [], []
+    for side, sm in sides.items():
+        for post in sm.posts:
+            p, _ = ray_in_map(post.place, np.array([0.0, 0.0, 1.0]), sm, poses[side])
+            places.append(p)
+            radii.append(post.radius_m)
+    return np.array(places).reshape(-1, 3), float(max(radii, default=0.0))
+
+
+def measure_trees(merged: MergeOutcome, sides: dict[str, SideMap], clouds: dict[str, np.ndarray],
+                  trees: list[ResultTree], cfg: OrchardConfig) -> tuple[list[ResultTree], RowLabels]:
+    """The trees with height and canopy volume filled in (flags where they could not be measured), and the
+    merged cloud's per-point labels. clouds: each side's cloud in map (clouds_in_map)."""
+    t0 = time.perf_counter()
+    poses = map_poses(merged, sides)
+    pts = np.concatenate([clouds["front"], clouds["back"]])  # (N, 3) map
+    colors = np.concatenate([sides["front"].cloud_colors, sides["back"].cloud_colors])
+    side = np.repeat([SIDE_CODE["front"], SIDE_CODE["back"]], [len(clouds["front"]), len(clouds["back"])])
+    none = RowLabels(pts, colors, side.astype(np.uint8), np.full(len(pts), -1, np.int32),
+                     np.full(len(pts), CLASS["none"], np.uint8))
+    if not trees or not len(pts):
+        return trees, none
+    up = _up_in_map(sides, poses)
+    feet = np.array([t.position for t in trees], float)  # (T, 3) map
+    normals = _tree_grounds(trees, sides, poses, up)
+    # the row frame: x along the row (through the feet; the cameras' path for a row of one tree), z up
+    if len(trees) > 1:
+        along = row_direction(feet)
+    else:
+        cams = np.concatenate([P[:, :3, 3] for P in poses.values()])
+        along = row_direction(cams)
+    along = along - (along @ up) * up
+    along /= np.linalg.norm(along)
+    R = np.stack([along, np.cross(up, along), up])  # (3, 3) rows: the row frame's axes in map
+    origin = feet.mean(axis=0)
+
+    def to_row(p: np.ndarray) -> np.ndarray:
+        return (np.asarray(p, float) - origin) @ R.T
+
+    post_places, post_radius = _posts_in_map(sides, poses)
+    radius = np.array([(t.trunk_diameter_m or 0.0) / 2 for t in trees])  # (T,) m
+    # the clear trunk from each tree's own points (canopy_base_height): its trunk landmark runs on up the leader
+    result: RowTraits = measure_row(
+        to_row(pts), to_row(feet), to_row(feet), normals @ R.T, np.full(len(trees), np.nan),
+        np.array([1.0, 0.0, 0.0]), cfg.traits, post_points=to_row(post_places) if len(post_places) else None,
+        post_radius_m=post_radius, trunk_radii=radius)
+    clear = np.array([m.clear_height_m if np.isfinite(m.clear_height_m) else 0.0 for m in result.trees])
+    ids = np.array([t.id for t in trees])
+    tree_id = np.where(result.tree >= 0, ids[np.maximum(result.tree, 0)], -1).astype(np.int32)
+    cls = np.full(len(pts), CLASS["none"], np.uint8)
+    cls[result.kind == KIND_GROUND] = CLASS["ground"]
+    cls[result.kind == KIND_POST] = CLASS["post"]
+    cls[result.kind == KIND_WIRE] = CLASS["wire"]
+    tree_pts = result.kind == KIND_TREE
+    cls[tree_pts] = CLASS["canopy"]
+    # the trunk: a tree's points near its axis (the foot along its ground normal) below its clear trunk height
+    k = np.maximum(result.tree, 0)
+    d = pts - feet[k]  # (N, 3)
+    h = np.sum(d * normals[k], axis=1)
+    off = np.linalg.norm(d - h[:, None] * normals[k], axis=1)
+    trunk = tree_pts & (h <= np.maximum(clear[k], 0.0)) & (off <= radius[k] + TRUNK_MARGIN_M)
+    cls[trunk] = CLASS["trunk"]
+    out = []
+    for tree, m in zip(trees, result.trees, strict=True):
+        flags = list(tree.flags)
+        if not m.separated:
+            flags.append(SEGMENTATION_UNCERTAIN)
+        height = float(m.height_m) if np.isfinite(m.height_m) else None
+        volume = float(m.canopy_volume_m3) if np.isfinite(m.canopy_volume_m3) and m.canopy_volume_m3 > 0 else None
+        if height is None or volume is None:
+            flags.append(NO_CANOPY_POINTS)
+        extra = dict(tree.extra)
+        if np.isfinite(m.clear_height_m):
+            extra["clear_trunk_height_m"] = round(float(m.clear_height_m), 4)  # where its canopy begins
+        out.append(replace(tree, height_m=height, canopy_volume_m3=volume, flags=tuple(dict.fromkeys(flags)),
+                           extra=extra))
+    log.info("traits: %d trees in %.2f s (%s)", len(trees), time.perf_counter() - t0, cfg.traits.segmentation)
+    return out, RowLabels(pts, colors, side.astype(np.uint8), tree_id, cls)
+
+
+def merge_and_measure(sides: dict[str, SideMap], cfg: OrchardConfig, worker: TrunkWorker | None = None
+                      ) -> tuple[MergeOutcome, dict[str, np.ndarray], list[ResultTree], RowLabels, float]:
+    """merge_to_trees, then each tree's traits: what `run` and the side merger node write. Also the traits
+    stage's seconds. AlignmentError when the merge is refused."""
+    merged, clouds, trees = merge_to_trees(sides, cfg, worker)
+    t0 = time.perf_counter()
+    trees, labels = measure_trees(merged, sides, clouds, trees, cfg)
+    return merged, clouds, trees, labels, time.perf_counter() - t0
