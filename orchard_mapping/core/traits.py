@@ -63,6 +63,10 @@ class TraitsParams:
     # m, voxel downsampling of the merged cloud before segmentation and volume (0 = off): the grid step of
     # the segmentation anyway; its effect on the volume is not yet separated from segmentation errors.
     voxel_m: float = 0.02
+    # m, the crown is thinned further to this before its alpha complex: the Delaunay of a crown's 2 cm voxels
+    # took 0.9 s a tree, over half the stage; at 4 cm 0.16 s, and the 10-tree standard row's volume MAPE
+    # went 4.9 -> 4.4 % (the alpha-0.8 m shape does not need the leaves' detail)
+    volume_voxel_m: float = 0.04
     # m, floor of the shrink-and-expand grid step (the median nearest-neighbour spacing of the pair's
     # points, the paper's choice); the grid's cells grow 8x per halving of the step.
     grid_min_m: float = 0.02
@@ -178,8 +182,10 @@ def measure_row(points: np.ndarray, trunk_positions: np.ndarray, ground_points: 
             c = canopy_base_height(cen[tree_v == t], gp[t], gn[t], trunk_radius_m=r, body_cell_m=params.body_cell_m)
         crown = cen[tree_v == t]
         crown = crown[height_above_plane(crown, gp[t], gn[t]) > c] if np.isfinite(c) else crown[:0]
-        v = (alpha_complex_volume(crown[main_body(crown, params.body_cell_m)], params.alpha_m)
-             if len(crown) else float("nan"))
+        crown = crown[main_body(crown, params.body_cell_m)] if len(crown) else crown
+        if params.volume_voxel_m > params.voxel_m and len(crown):
+            crown = voxel_downsample(crown, params.volume_voxel_m)[0]
+        v = alpha_complex_volume(crown, params.alpha_m) if len(crown) else float("nan")
         k = rank[t]
         sep = bool((k == 0 or separated[k - 1]) and (k == len(tr) - 1 or separated[k]))
         out.append(TreeMorphology(t, h, v, n_pts, c, sep))
