@@ -4,11 +4,12 @@ In:  /orchard/merged/trees  TreeTraitsArray from the side merger (latched): each
      its two-side trunk diameter and each side's own, flags
 Out (latched, frame map):
      /orchard/trees          orchard_mapping_msgs/TreeTraitsArray: every tree with the traits measured so far
-                             (trunk diameter; height, canopy volume and fruit count stay NaN / -1 until
-                             they are measured, as in trees.json where they are null)
+                             (trunk diameter, height, canopy volume; fruit count stays -1 until it is
+                             measured, as in trees.json where it is null)
      /orchard/tree_markers   visualization_msgs/MarkerArray: a cylinder per trunk (its diameter, 0.6 m
-                             high, green when seen from both sides, orange from one) and a text label
-                             (tree id and diameter in mm) above it
+                             high, green when seen from both sides, orange from one), a text label
+                             (tree id, diameter in mm, height, canopy volume) above it and, where the
+                             height is measured, a translucent box for the crown (namespace `crowns`)
 With `out_dir` set, trees.json and trees.csv are written there as `orchard-map run` writes them (each
 file atomically; the trees are validated before anything is written). With `exit_after_reports`
 (replaying bags) the node exits 0 after that many reports, which ends the graph.
@@ -72,7 +73,28 @@ def tree_markers(trees: list[ResultTree], frame_id: str, stamp: float) -> Marker
         label.color.r = label.color.g = label.color.b = 1.0
         label.text = f"tree {t.id}" + (f": {1000 * t.trunk_diameter_m:.0f} mm" if t.trunk_diameter_m else "")
         out.markers += [trunk, label]
+        if t.height_m is not None:
+            label.text += f", {t.height_m:.2f} m" + (f", {t.canopy_volume_m3:.2f} m3" if t.canopy_volume_m3 else "")
+            label.pose.position.y = t.position[1] - t.height_m - 0.15  # above the crown
+            out.markers.append(_crown_box(t, frame_id, stamp))
     return out
+
+
+def _crown_box(t: ResultTree, frame_id: str, stamp: float) -> Marker:
+    """The crown as a box from the clear trunk to the top, its footprint square with the canopy volume's area
+    (the crown's shape is in trees.laz). Up is map's -y (the front camera's optical frame)."""
+    box = Marker()
+    stamp_header(box.header, stamp, frame_id)
+    box.ns, box.id, box.action, box.type = "crowns", t.id, Marker.ADD, Marker.CUBE
+    base = float(t.extra.get("clear_trunk_height_m", 0.0) or 0.0)
+    tall = max(float(t.height_m) - base, 0.05)
+    side = math.sqrt(t.canopy_volume_m3 / tall) if t.canopy_volume_m3 else 0.5
+    box.pose.position.x, box.pose.position.y, box.pose.position.z = t.position
+    box.pose.position.y -= base + tall / 2
+    box.pose.orientation.w = 1.0
+    box.scale.x, box.scale.y, box.scale.z = side, tall, side
+    box.color.r, box.color.g, box.color.b, box.color.a = 0.3, 0.7, 0.3, 0.35
+    return box
 
 
 class TraitReporterNode(Node):

@@ -82,5 +82,9 @@ def test_trees_round_trip_through_tree_traits_array():
     assert msg.trees[1].trunk_id_front == -1 and math.isnan(msg.trees[1].trunk_diameter)
     assert msg.trees[0].fruit_count == -1 and msg.trees[2].fruit_count == 12
     markers = tree_markers(trees, "map", 12.5).markers
-    assert len(markers) == 1 + 2 * len(trees) and markers[2].text == "tree 0: 81 mm"
+    assert len(markers) == 1 + 2 * len(trees) + 1 and markers[2].text == "tree 0: 81 mm"
+    crown = markers[-1]  # tree 2: height 2.4 m, 1.5 m3 (no clear trunk given: from its foot)
+    assert crown.ns == "crowns" and crown.scale.y == pytest.approx(2.4)
+    assert crown.scale.x * crown.scale.y * crown.scale.z == pytest.approx(1.5)
+    assert markers[-2].text == "tree 2: 70 mm, 2.40 m, 1.50 m3"
     assert markers[3].color.g < markers[1].color.g  # seen from one side: orange, from both: green

@@ -71,7 +71,9 @@ def test_launched_graph_on_bags_gives_the_offline_trunks(standard_row, tmp_path)
     assert merge["method"] == offline_merge["method"] == "semantic_ba"
     _same_tf(rec, np.array(offline_merge["T_front_back"]))
     markers = [m for _, m in iter_messages(rec, "/orchard/tree_markers")][-1]
-    assert len(markers.markers) == 1 + 2 * len(read_trees(offline / "trees.json"))  # DELETEALL, then a trunk and a label per tree
+    trees = read_trees(offline / "trees.json")
+    # DELETEALL, then a trunk and a label per tree, and a crown box per tree whose height was measured
+    assert len(markers.markers) == 1 + 2 * len(trees) + sum(t.height_m is not None for t in trees)
 
 
 def _same_tf(rec, T_front_back: np.ndarray) -> None:
@@ -105,7 +107,8 @@ def _same_tf(rec, T_front_back: np.ndarray) -> None:
 
 def _same_trees(rec, out, offline) -> None:
     """The trees the graph published (decoded from the recording) and wrote are the offline run's: same ids,
-    flags and per-side trunk ids, positions within 1 cm, diameters within 1 mm."""
+    flags and per-side trunk ids, positions within 1 cm, diameters within 1 mm, heights within 1 cm, canopy
+    volumes within 2 %."""
     offline_trees = read_trees(offline / "trees.json")
     msgs = [m for _, m in iter_messages(rec, "/orchard/trees")]
     assert len(msgs) == 1 and msgs[0].header.frame_id == "map", len(msgs)
@@ -119,7 +122,10 @@ def _same_trees(rec, out, offline) -> None:
             assert np.isnan(m.trunk_diameter)
         else:
             assert abs(m.trunk_diameter - t.trunk_diameter_m) < 1e-3, (m.trunk_diameter, t.trunk_diameter_m)  # 1 mm
-        assert np.isnan(m.height) and m.fruit_count == -1  # not measured yet, as offline (null)
+        # height and canopy volume as offline (the same merge_and_measure on side maps equal within 1 mm)
+        assert t.height_m is not None and abs(m.height - t.height_m) < 0.01, (m.height, t.height_m)  # 1 cm
+        assert t.canopy_volume_m3 is not None and abs(m.canopy_volume - t.canopy_volume_m3) < 0.02 * t.canopy_volume_m3
+        assert m.fruit_count == -1  # not measured yet, as offline (null)
         for side in ("front", "back"):
             own = (t.per_side or {}).get(side)
             assert getattr(m, f"trunk_id_{side}") == (own["trunk_id"] if own else -1)
