@@ -69,6 +69,7 @@ def write_laz(path: str | Path, points: np.ndarray, colors: np.ndarray, classifi
     os.close(fd)
     try:
         las.write(tmp, laz_backend=laspy.LazBackend.Lazrs)
+        os.chmod(tmp, 0o644)  # as the result folder's other files (mkstemp makes it 0600)
         os.replace(tmp, path)
     except BaseException:
         Path(tmp).unlink(missing_ok=True)

@@ -30,6 +30,7 @@ def test_trees_laz_round_trips_every_field(tmp_path, seed):
     assert np.array_equal(got["tree_id"], tree)
     assert np.array_equal(got["side"], side)
     assert [p.name for p in tmp_path.iterdir()] == ["trees.laz"]  # no temporary file left
+    assert path.stat().st_mode & 0o777 == 0o644
 
 
 def test_the_header_names_the_local_frame_and_no_crs(tmp_path):
