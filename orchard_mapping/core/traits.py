@@ -126,8 +126,9 @@ def measure_row(points: np.ndarray, trunk_positions: np.ndarray, ground_points: 
                 ground_normals: np.ndarray, clear_heights: np.ndarray, row_direction: np.ndarray,
                 params: TraitsParams, *, post_points: np.ndarray | None = None,
                 post_radius_m: float = 0.0, trunk_radii: np.ndarray | None = None) -> RowTraits:
-    """Traits of every tree of a merged row: points (N, 3); per tree (T): trunk_positions (T, 3) where the
-    trunk axis meets the local ground, the local ground planes (ground_points (T, 3), unit-up
+    """Traits of every tree of a merged row: points (N, 3); per tree (T): trunk_positions (T, 3), the point of
+    each trunk's line the row is split at (the cutting planes and the shrink's trunk lines pass through it:
+    where the axis meets the ground, or, for leaning trees, the axis at crown height), the local ground planes (ground_points (T, 3), unit-up
     ground_normals (T, 3)), clear trunk heights (T,) m (NaN: where the tree's own points say the canopy
     begins, core.canopy.canopy_base_height, off its trunk of radius trunk_radii (T,) m); the row direction
     (3,); vertical posts standing on post_points (P, 3) with radius post_radius_m."""
