@@ -201,10 +201,13 @@ def canopy_base_height(points: np.ndarray, ground_point: np.ndarray, ground_norm
     return base * slice_m
 
 
-def main_body(points: np.ndarray, cell_m: float) -> np.ndarray:
-    """(N,) bool: the points (N, 3) of the largest connected body, cells of cell_m touching by a face, edge
-    or corner. What is left floats apart from the tree: a wire's stub at a post, a neighbour's stray leaf
-    (10-tree standard row: a wire fragment 19 cm above the shortest crown made its height 21 cm too much)."""
+def main_body(points: np.ndarray, cell_m: float, min_fraction: float = 0.1) -> np.ndarray:
+    """(N,) bool: the points (N, 3) of the tree's body: the connected parts (cells of cell_m touching by a
+    face, edge or corner) holding at least min_fraction of the largest part's points (the paper drops
+    regions under 10 % of the principal one). What is left floats apart from the tree: a wire's stub at a
+    post, a neighbour's stray leaf (10-tree standard row: a wire fragment 19 cm above the shortest crown made
+    its height 21 cm too much). Keeping the largest part alone lost a third of a crown that wind had blurred
+    into two parts (wind row, one tree: volume -31 %)."""
     pts = _check_points(points, "points")
     if len(pts) == 0:
         return np.zeros(0, bool)
@@ -213,7 +216,8 @@ def main_body(points: np.ndarray, cell_m: float) -> np.ndarray:
     grid[ijk[:, 0], ijk[:, 1], ijk[:, 2]] = True
     labels, n = ndimage.label(grid, structure=np.ones((3, 3, 3), bool))
     lab = labels[ijk[:, 0], ijk[:, 1], ijk[:, 2]]  # (N,) >= 1
-    return lab == np.argmax(np.bincount(lab))
+    size = np.bincount(lab)  # (n + 1,) points per part
+    return size[lab] >= min_fraction * size.max()
 
 
 def canopy_volume(points: np.ndarray, ground_point: np.ndarray, ground_normal: np.ndarray, *,

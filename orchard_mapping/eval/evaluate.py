@@ -147,6 +147,23 @@ def _mean_or_none(v: np.ndarray) -> float | None:
     return float(v.mean()) if v.size else None
 
 
+INTERVAL_TRAITS = {"trunk_diameter_m": "diameter_m", "height_m": "height_m", "canopy_volume_m3": "canopy_volume_m3"}
+
+
+def _interval_coverage(gt: GroundTruth, trees: list[ResultTree], m) -> dict[str, dict[str, float]]:
+    """Per trait: how many matched trees give a 90 % interval (trees.json `interval_90`) and the share of
+    them whose true value lies inside it (a calibrated interval holds it 85-95 % of the time)."""
+    hits: dict[str, list[bool]] = {}
+    for i, j in zip(m.true_index.tolist(), m.est_index.tolist(), strict=True):
+        intervals = trees[j].extra.get("interval_90") or {}
+        for trait, true_attr in INTERVAL_TRAITS.items():
+            lo_hi = intervals.get(trait)
+            if lo_hi is not None:
+                true = getattr(gt.trees[i], true_attr)
+                hits.setdefault(trait, []).append(bool(lo_hi[0] <= true <= lo_hi[1]))
+    return {trait: {"n": len(h), "coverage": float(np.mean(h))} for trait, h in hits.items()}
+
+
 def _trees_part(
     gt: GroundTruth, trees: list[ResultTree], T_front_world: np.ndarray, radius_m: float, gate_factor: float
 ) -> tuple[MatchingSummary, tuple[TreePair, ...], TraitErrors, FruitCountError, DoubleCount | None]:
@@ -204,6 +221,7 @@ def _trees_part(
         canopy_volume_mape_percent=None if mape is None else 100.0 * mape,
         canopy_volume_bias_percent=None if bias is None else 100.0 * bias,
         canopy_volume_n=int(v_rel.size),
+        interval_coverage=_interval_coverage(gt, trees, m),
     )
 
     counted = [p for p in pairs if p.est_fruit_count is not None]

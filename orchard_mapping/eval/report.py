@@ -71,6 +71,8 @@ class TraitErrors:
     canopy_volume_mape_percent: float | None  # mean |est - true| / true x 100
     canopy_volume_bias_percent: float | None  # mean (est - true) / true x 100
     canopy_volume_n: int
+    # trait -> {"n": trees whose result gives a 90 % interval, "coverage": share of them holding the truth}
+    interval_coverage: Mapping[str, Mapping[str, float]] = field(default_factory=dict)
 
 
 @dataclass(frozen=True)

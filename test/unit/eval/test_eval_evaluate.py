@@ -135,6 +135,25 @@ def test_trait_errors(truth_path: Path, result_dir: Path) -> None:
     assert t.canopy_volume_bias_percent == pytest.approx(20.0)
 
 
+def test_interval_coverage(truth_path: Path, result_dir: Path) -> None:
+    """The share of matched trees whose 90 % interval (trees.json `interval_90`) holds the true value."""
+    def with_intervals(trees: list[ResultTree]) -> list[ResultTree]:
+        out = []
+        for k, t in enumerate(trees):
+            off = 0.0 if k else 0.5  # tree 0's height interval misses the truth by half a metre
+            iv = {"height_m": [t.height_m - 0.01 + off, t.height_m + 0.01 + off],
+                  "canopy_volume_m3": [0.9 * t.canopy_volume_m3, 1.1 * t.canopy_volume_m3]}
+            out.append(dataclasses.replace(t, extra={**t.extra, "interval_90": iv}))
+        return out
+
+    _edit_trees(result_dir, with_intervals)
+    cov = evaluate_result(truth_path, result_dir).traits.interval_coverage
+    n = len(cov["height_m"]) and cov["height_m"]["n"]
+    assert n == 3 and cov["height_m"]["coverage"] == pytest.approx(2 / 3)
+    assert cov["canopy_volume_m3"] == {"n": 3, "coverage": 1.0}
+    assert "trunk_diameter_m" not in cov  # no tree gives that interval
+
+
 def test_fruit_count_error(truth_path: Path, result_dir: Path) -> None:
     _edit_trees(
         result_dir,
