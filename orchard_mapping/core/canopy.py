@@ -23,6 +23,7 @@ from scipy.sparse import coo_matrix
 from scipy.sparse.csgraph import connected_components
 from scipy.spatial import Delaunay, cKDTree
 
+from orchard_mapping.core.geometry import checked_unit
 from orchard_mapping.errors import OrchardMappingError
 
 __all__ = [
@@ -121,11 +122,7 @@ def alpha_regions(cx: AlphaComplex) -> tuple[int, np.ndarray]:
 
 
 def _unit(v: np.ndarray, what: str) -> np.ndarray:
-    v = np.asarray(v, float).reshape(3)
-    n = float(np.linalg.norm(v))
-    if not n > 0 or not np.isfinite(n):
-        raise CanopyError(f"{what} must be a finite non-zero 3-vector, got {v.tolist()}")
-    return v / n
+    return checked_unit(v, what, CanopyError)
 
 
 def height_above_plane(points: np.ndarray, ground_point: np.ndarray, ground_normal: np.ndarray) -> np.ndarray:
@@ -184,8 +181,9 @@ def canopy_base_height(points: np.ndarray, ground_point: np.ndarray, ground_norm
     away = (off > trunk_radius_m + off_axis_m) & (h > 0)
     if not away.any():
         return float("nan")
-    # the crown's own body: weeds and grass under it touch it only through the trunk, which is left out here
-    hc = h[away][main_body(np.asarray(points, float)[away], body_cell_m)]
+    # the crown's own body, its largest part alone: weeds and grass under it touch it only through the trunk,
+    # which is left out here, and a lawn can hold more than a tenth of a crown's points
+    hc = h[away][main_body(np.asarray(points, float)[away], body_cell_m, min_fraction=1.0)]
     counts = np.bincount(np.floor(hc / slice_m).astype(np.int64))  # (S,) per slice, from the ground up
     thr = min_fraction * float(np.median(counts[counts > 0]))
     full = counts >= max(thr, 1.0)

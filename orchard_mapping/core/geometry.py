@@ -204,3 +204,12 @@ class SlabIndex:
         """(n, 3) the points strictly within the cube of half side `half` (m) around centre (3,)."""
         idx = self.slab(centre, half)
         return self.points[idx[np.all(np.abs(self.points[idx] - centre) < half, axis=1)]]
+
+
+def checked_unit(v: np.ndarray, what: str, error: type[Exception] = ValueError) -> np.ndarray:
+    """(3,) v scaled to unit length; `error` naming `what` if v is not a finite, non-zero 3-vector."""
+    v = np.asarray(v, float).reshape(3)
+    n = float(np.linalg.norm(v))
+    if not n > 0 or not np.isfinite(n):
+        raise error(f"{what} must be a finite non-zero 3-vector, got {v.tolist()}")
+    return v / n

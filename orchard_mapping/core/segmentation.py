@@ -30,6 +30,7 @@ import numpy as np
 from scipy import ndimage
 from scipy.spatial import cKDTree
 
+from orchard_mapping.core.geometry import checked_unit
 from orchard_mapping.errors import OrchardMappingError
 
 __all__ = [
@@ -74,11 +75,7 @@ class RowSegmentation:
 
 
 def _unit(v: np.ndarray, what: str) -> np.ndarray:
-    v = np.asarray(v, float).reshape(3)
-    n = float(np.linalg.norm(v))
-    if not n > 0 or not np.isfinite(n):
-        raise SegmentationError(f"{what} must be a finite non-zero 3-vector, got {v.tolist()}")
-    return v / n
+    return checked_unit(v, what, SegmentationError)
 
 
 def _row_axes(row_direction: np.ndarray, up: np.ndarray) -> np.ndarray:
