@@ -158,8 +158,8 @@ def _interval_coverage(gt: GroundTruth, trees: list[ResultTree], m) -> dict[str,
         intervals = trees[j].extra.get("interval_90") or {}
         for trait, true_attr in INTERVAL_TRAITS.items():
             lo_hi = intervals.get(trait)
-            if lo_hi is not None:
-                true = getattr(gt.trees[i], true_attr)
+            true = getattr(gt.trees[i], true_attr)
+            if lo_hi is not None and not (trait == "canopy_volume_m3" and not true > 0):  # 0: no volume truth
                 hits.setdefault(trait, []).append(bool(lo_hi[0] <= true <= lo_hi[1]))
     return {trait: {"n": len(h), "coverage": float(np.mean(h))} for trait, h in hits.items()}
 
