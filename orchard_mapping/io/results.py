@@ -163,6 +163,8 @@ def staged_folder(out: str | Path) -> Iterator[Path]:
     try:
         yield stage
         for f in sorted(stage.iterdir()):
+            if f.is_dir() and (out / f.name).is_dir():  # a folder of results (trees/): the earlier one goes
+                shutil.rmtree(out / f.name)
             os.replace(f, out / f.name)
     except BaseException:
         shutil.rmtree(stage, ignore_errors=True)

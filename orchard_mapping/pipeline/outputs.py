@@ -14,13 +14,14 @@ from orchard_mapping.config import OrchardConfig
 from orchard_mapping.core.geometry import matrix_to_quat, move_with_keyframes
 from orchard_mapping.core.sidemap import SideMap
 from orchard_mapping.core.types import StampedTrajectory
-from orchard_mapping.io.figures import RowView, write_row_png
+from orchard_mapping.io.figures import RowView, write_row_png, write_tree_png
 from orchard_mapping.io.landmarks import GROUNDS_JSON, TRUNKS_JSON, write_grounds, write_trunks
 from orchard_mapping.io.laz import write_laz
 from orchard_mapping.io.results import (
     SIDE_MERGE_JSON,
     TREES_CSV,
     TREES_JSON,
+    ResultTree,
     map_trajectory_filename,
     write_side_merge,
     write_tum,
@@ -29,11 +30,11 @@ from orchard_mapping.pipeline.merge import MergeOutcome, clouds_in_map, map_pose
 from orchard_mapping.pipeline.traits import RowLabels
 
 # What a merge writes into the result folder (docs/results.md).
-MERGED_PLY, ROW_PNG, TREES_LAZ = "merged.ply", "row.png", "trees.laz"
+MERGED_PLY, ROW_PNG, TREES_LAZ, TREE_FIGURES = "merged.ply", "row.png", "trees.laz", "trees"
 
 
 MERGE_OUTPUTS = (SIDE_MERGE_JSON, TREES_JSON, TREES_CSV, map_trajectory_filename("*"), MERGED_PLY, ROW_PNG,
-                 TREES_LAZ)
+                 TREES_LAZ, TREE_FIGURES)
 
 
 def write_cloud(path: Path, points: np.ndarray, colors: np.ndarray) -> None:
@@ -136,6 +137,17 @@ def write_merge(out: Path, m: MergeOutcome, sides: dict[str, SideMap],
         write_row_png(out / ROW_PNG, al.front.T_canon_odom, [before, after], seed=0)
 
 
-def write_tree_cloud(out: Path, labels: RowLabels) -> None:
-    """trees.laz: the merged cloud with each point's tree and class (io.laz; docs/results.md)."""
+def write_tree_cloud(out: Path, labels: RowLabels, trees: list[ResultTree] | None = None) -> None:
+    """trees.laz: the merged cloud with each point's tree and class (io.laz), and with `trees`,
+    trees/<id>.png: each tree's points from the front and the side (docs/results.md)."""
     write_laz(out / TREES_LAZ, labels.points, labels.colors, labels.classification, labels.tree_id, labels.side)
+    for t in trees or []:
+        mine = labels.tree_id == t.id
+        if not mine.any():
+            continue
+        d = f"{1000 * t.trunk_diameter_m:.0f} mm" if t.trunk_diameter_m else "n/a"
+        h = f"{t.height_m:.2f} m" if t.height_m is not None else "n/a"
+        v = f"{t.canopy_volume_m3:.2f} m3" if t.canopy_volume_m3 is not None else "n/a"
+        write_tree_png(out / TREE_FIGURES / f"{t.id}.png", f"tree {t.id}: trunk {d}, height {h}, canopy {v}",
+                       (labels.points[mine] - np.asarray(t.position)) @ labels.R_row_map.T,
+                       labels.classification[mine], t.height_m, t.extra.get("clear_trunk_height_m"))

@@ -4,6 +4,7 @@ result."""
 from __future__ import annotations
 
 import logging
+import shutil
 import time
 from dataclasses import dataclass
 from pathlib import Path
@@ -51,7 +52,7 @@ def run(front: str | Path, back: str | Path | None, out: str | Path, cfg: Orchar
         # an earlier run's merge outputs in `out` would now contradict them.
         for name in MERGE_OUTPUTS:
             for f in out.glob(name):
-                f.unlink()
+                shutil.rmtree(f) if f.is_dir() else f.unlink()
         raise MergeRefusedError(
             f"the two sides were not merged: {result.merge_refused}. Each side's results (trajectories, "
             f"clouds, trunks.json) are in {out}; no side_merge.json and no trees in map were written. "
@@ -105,7 +106,7 @@ def _run(front: Path, back: Path | None, out: Path, cfg: OrchardConfig, progress
                 else:
                     write_merge(out, merged, sides, clouds)
                     write_trees(out, trees, frame="map")
-                    write_tree_cloud(out, labels)
+                    write_tree_cloud(out, labels, trees)
                 timings.add("merge", time.perf_counter() - t0 - traits_s)
                 timings.add("traits", traits_s)
     finally:

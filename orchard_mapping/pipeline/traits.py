@@ -12,7 +12,7 @@ from __future__ import annotations
 
 import logging
 import time
-from dataclasses import dataclass, replace
+from dataclasses import dataclass, field, replace
 
 import numpy as np
 
@@ -53,6 +53,7 @@ class RowLabels:
     side: np.ndarray  # (N,) uint8, SIDE_CODE
     tree_id: np.ndarray  # (N,) int32, the tree's id in trees.json, -1 none
     classification: np.ndarray  # (N,) uint8, io.laz.CLASS
+    R_row_map: np.ndarray = field(default_factory=lambda: np.eye(3))  # (3, 3) rows: the row frame's x, y, z in map
 
 
 def _up_in_map(sides: dict[str, SideMap], poses: dict[str, np.ndarray]) -> np.ndarray:
@@ -189,7 +190,7 @@ def measure_trees(merged: MergeOutcome, sides: dict[str, SideMap], clouds: dict[
         extra["interval_90"] = _intervals(values, flags)
         out.append(replace(tree, height_m=height, canopy_volume_m3=volume, flags=tuple(flags), extra=extra))
     log.info("traits: %d trees in %.2f s (%s)", len(trees), time.perf_counter() - t0, cfg.traits.segmentation)
-    return out, RowLabels(pts, colors, side.astype(np.uint8), tree_id, cls)
+    return out, RowLabels(pts, colors, side.astype(np.uint8), tree_id, cls, R)
 
 
 def _intervals(values: dict[str, float | None], flags: list[str]) -> dict[str, list[float]]:

@@ -18,7 +18,7 @@ Out (latched, frame `map` = odom_front):
      /tf_static                        map -> odom_front (identity) and map -> odom_back (the merge's rigid
                                        transform), so RViz shows each side's odom frames in map
 With `out_dir` set, the merge's files (side_merge.json, both trajectories in map, merged.ply, row.png,
-trees.laz) are written there as `orchard-map run` writes them, each file atomically. A refused merge (too few trees
+trees.laz, trees/<id>.png) are written there as `orchard-map run` writes them, each file atomically. A refused merge (too few trees
 seen from both sides, or pairs that disagree) is published in the status and logged; nothing is guessed.
 With `exit_on_refusal` (replaying bags) a refusal also ends the node with exit code 2, which stops the
 graph as `orchard-map run` stops with 2; otherwise the node waits for the next map of either side.
@@ -147,17 +147,18 @@ class SideMergerNode(Node):
         self.merges += 1
         out = self.get_parameter("out_dir").value
         if out:
-            self._write(Path(out), merged, clouds, labels)
+            self._write(Path(out), merged, clouds, labels, trees)
         self._publish(merged, clouds, trees)
         self.get_logger().info(f"merged ({merged.method}) on {len(merged.pairs)} trunk pairs in "
                                f"{self.seconds[-1]:.2f} s: {len(trees)} trees")
 
-    def _write(self, out: Path, merged: MergeOutcome, clouds: dict[str, np.ndarray], labels: RowLabels) -> None:
+    def _write(self, out: Path, merged: MergeOutcome, clouds: dict[str, np.ndarray], labels: RowLabels,
+               trees: list) -> None:
         """The merge's files into `out`, each moved in only once all were written (a stop meanwhile leaves
         the earlier set whole), as `orchard-map run` writes its result folder."""
         with staged_folder(out) as stage:
             write_merge(stage, merged, self.maps, clouds)
-            write_tree_cloud(stage, labels)
+            write_tree_cloud(stage, labels, trees)
 
     def _publish(self, merged: MergeOutcome, clouds: dict[str, np.ndarray], trees: list) -> None:
         front, back = self.maps["front"], self.maps["back"]

@@ -559,3 +559,4 @@ def test_each_tree_is_measured_in_the_merged_map(reconstructed_model, accuracy):
         mine = laz["classification"][laz["tree_id"] == t.id]
         assert np.sum(mine == CLASS["canopy"]) > 1000 and np.sum(mine == CLASS["trunk"]) > 50, t.id
     assert np.sum(laz["classification"] == CLASS["ground"]) > 10_000
+    assert sorted(p.name for p in (out / "trees").iterdir()) == [f"{t.id}.png" for t in trees]  # the figures
