@@ -219,11 +219,21 @@ def main_body(points: np.ndarray, cell_m: float, min_fraction: float = 0.1) -> n
 
 
 def canopy_volume(points: np.ndarray, ground_point: np.ndarray, ground_normal: np.ndarray, *,
-                  clear_trunk_height_m: float, alpha_m: float) -> float:
+                  clear_trunk_height_m: float, alpha_m: float, body_cell_m: float | None = None,
+                  voxel_m: float = 0.0) -> float:
     """Canopy volume (m^3): the alpha-complex volume of the tree's points (N, 3) higher than
-    clear_trunk_height_m above its local ground plane (ground_point (3,), unit-up normal (3,))."""
-    h = height_above_plane(points, ground_point, ground_normal)
-    return alpha_complex_volume(np.asarray(points, float)[h > clear_trunk_height_m], alpha_m)
+    clear_trunk_height_m above its local ground plane (ground_point (3,), unit-up normal (3,)); with
+    body_cell_m, of their main body only (main_body); with voxel_m > 0, thinned to that first. NaN when no
+    point lies above the clear trunk (no crown was seen)."""
+    pts = np.asarray(points, float)
+    crown = pts[height_above_plane(pts, ground_point, ground_normal) > clear_trunk_height_m]
+    if len(crown) == 0:
+        return float("nan")
+    if body_cell_m is not None:
+        crown = crown[main_body(crown, body_cell_m)]
+    if voxel_m > 0:
+        crown = voxel_downsample(crown, voxel_m)[0]
+    return alpha_complex_volume(crown, alpha_m)
 
 
 def voxel_downsample(points: np.ndarray, voxel_m: float) -> tuple[np.ndarray, np.ndarray]:

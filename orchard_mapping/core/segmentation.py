@@ -40,6 +40,7 @@ __all__ = [
     "cutting_plane_segmentation",
     "ground_and_post_masks",
     "height_above_grounds",
+    "row_axes",
     "row_line_mask",
     "shrink_and_expand_pair",
     "shrink_and_expand_segmentation",
@@ -78,7 +79,7 @@ def _unit(v: np.ndarray, what: str) -> np.ndarray:
     return checked_unit(v, what, SegmentationError)
 
 
-def _row_axes(row_direction: np.ndarray, up: np.ndarray) -> np.ndarray:
+def row_axes(row_direction: np.ndarray, up: np.ndarray) -> np.ndarray:
     """(3, 3) rows: along the row (horizontal), across, up."""
     ez = _unit(up, "up")
     ex = np.asarray(row_direction, float).reshape(3)
@@ -106,7 +107,7 @@ def cutting_plane_segmentation(points: np.ndarray, trunk_positions: np.ndarray, 
     neighbours holds it; the planes are perpendicular to the row track. -1 for points further than
     max_reach_m beyond the end trunks along the row or max_lateral_m across it from their trunk."""
     pts, tr = _check(points, trunk_positions)
-    axes = _row_axes(row_direction, up)
+    axes = row_axes(row_direction, up)
     s, s_t = pts @ axes[0], tr @ axes[0]  # (N,), (T,)
     order = np.argsort(s_t, kind="stable")
     mids = 0.5 * (s_t[order][1:] + s_t[order][:-1])  # (T-1,)
@@ -155,7 +156,7 @@ def shrink_and_expand_pair(points: np.ndarray, trunk_a: np.ndarray, trunk_b: np.
     spacing of the points, at least min_grid_m. See the module docstring for the steps."""
     pts = np.asarray(points, float)
     a, b = np.asarray(trunk_a, float).reshape(3), np.asarray(trunk_b, float).reshape(3)
-    axes = _row_axes(b - a, up)
+    axes = row_axes(b - a, up)
     q = (pts - a) @ axes.T  # (M, 3) along, across, up; trunk a at the origin
     tb = (b - a) @ axes.T
     cut = (q[:, 0] >= 0.5 * tb[0]).astype(np.int64)  # the cutting plane's answer (fallback)
@@ -229,7 +230,7 @@ def shrink_and_expand_segmentation(points: np.ndarray, trunk_positions: np.ndarr
     first, then shrink-and-expand on each neighbouring pair; each tree is the union of its half-cut models
     (the pair before it on one side of its trunk's cutting plane, the pair after it on the other)."""
     pts, tr = _check(points, trunk_positions)
-    axes = _row_axes(row_direction, up)
+    axes = row_axes(row_direction, up)
     tree = cutting_plane_segmentation(pts, tr, axes[0], up=up, max_reach_m=max_reach_m, max_lateral_m=max_lateral_m)
     s, s_t = pts @ axes[0], tr @ axes[0]
     order = np.argsort(s_t, kind="stable")
@@ -292,14 +293,15 @@ def height_above_grounds(points: np.ndarray, tree_of_point: np.ndarray, ground_p
 def ground_and_post_masks(points: np.ndarray, tree_of_point: np.ndarray, ground_points: np.ndarray,
                           ground_normals: np.ndarray, *, ground_margin_m: float,
                           post_points: np.ndarray | None = None, post_axes: np.ndarray | None = None,
-                          post_radius_m: float = 0.0, post_margin_m: float = 0.0) -> tuple[np.ndarray, np.ndarray]:
+                          post_radius_m: float = 0.0, post_margin_m: float = 0.0,
+                          height: np.ndarray | None = None) -> tuple[np.ndarray, np.ndarray]:
     """(ground (N,) bool, post (N,) bool). Ground: points less than ground_margin_m above (or below) the
     local ground plane (ground_points (T, 3), unit-up ground_normals (T, 3)) of their tree (tree_of_point
     (N,), e.g. the cutting planes'; -1 takes the nearest tree's plane). Post: points within
     post_radius_m + post_margin_m of a post axis (a point (P, 3) on it and its direction (P, 3); vertical
-    when post_axes is None)."""
+    when post_axes is None). height: the points' height_above_grounds, where the caller has it already."""
     pts = np.asarray(points, float)
-    h = height_above_grounds(pts, tree_of_point, ground_points, ground_normals)  # (N,)
+    h = height_above_grounds(pts, tree_of_point, ground_points, ground_normals) if height is None else height
     # The ground a tree's plane predicts is off by its tilt error times the distance from its trunk (1 deg
     # at 1 m: 1.7 cm; a bumpy terrain more): the surface seen is the reference where it was seen, cell by cell
     ground = h - _seen_ground(pts, h) < ground_margin_m

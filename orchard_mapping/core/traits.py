@@ -11,18 +11,12 @@ from typing import Literal
 
 import numpy as np
 
-from orchard_mapping.core.canopy import (
-    alpha_complex_volume,
-    canopy_base_height,
-    height_above_plane,
-    main_body,
-    tree_height,
-    voxel_downsample,
-)
+from orchard_mapping.core.canopy import canopy_base_height, canopy_volume, main_body, tree_height, voxel_downsample
 from orchard_mapping.core.segmentation import (
     cutting_plane_segmentation,
     ground_and_post_masks,
     height_above_grounds,
+    row_axes,
     row_line_mask,
     shrink_and_expand_segmentation,
 )
@@ -143,15 +137,12 @@ def measure_row(points: np.ndarray, trunk_positions: np.ndarray, ground_points: 
     up = gn.mean(axis=0)
     cen, inv = voxel_downsample(pts, params.voxel_m)  # (V, 3), (N,)
     cut = cutting_plane_segmentation(cen, tr, row_direction, up=up)
+    height = height_above_grounds(cen, cut, gp, gn)  # (V,) m
     ground, post = ground_and_post_masks(cen, cut, gp, gn, ground_margin_m=params.ground_margin_m,
                                          post_points=post_points, post_radius_m=post_radius_m,
-                                         post_margin_m=params.post_margin_m)
+                                         post_margin_m=params.post_margin_m, height=height)
     # the trellis wires: lines along the row at one height and depth (in a frame of the row: x along, z up)
-    x = np.asarray(row_direction, float) - (np.asarray(row_direction, float) @ up) * up / (up @ up)
-    z = up / np.linalg.norm(up)
-    x = x / np.linalg.norm(x)
-    to_row = np.stack([x, np.cross(z, x), z])  # (3, 3)
-    wire = row_line_mask(cen @ to_row.T, height_above_grounds(cen, cut, gp, gn),
+    wire = row_line_mask(cen @ row_axes(row_direction, up).T, height,
                          min_height_m=params.wire_min_height_m) & ~ground & ~post
     keep = np.flatnonzero(~ground & ~post & ~wire)
     tree_v = np.full(len(cen), -1)
@@ -181,15 +172,14 @@ def measure_row(points: np.ndarray, trunk_positions: np.ndarray, ground_points: 
         h = tree_height(body, gp[t], gn[t], support_radius_m=params.height_support_radius_m,
                         min_support=params.height_min_support) if n_pts else float("nan")
         c = float(clear[t])
+        mine_v = cen[tree_v == t]  # (M, 3) the tree's voxels
         if not np.isfinite(c) and n_pts:
             r = float(trunk_radii[t]) if trunk_radii is not None else 0.0
-            c = canopy_base_height(cen[tree_v == t], gp[t], gn[t], trunk_radius_m=r, body_cell_m=params.body_cell_m)
-        crown = cen[tree_v == t]
-        crown = crown[height_above_plane(crown, gp[t], gn[t]) > c] if np.isfinite(c) else crown[:0]
-        crown = crown[main_body(crown, params.body_cell_m)] if len(crown) else crown
-        if params.volume_voxel_m > params.voxel_m and len(crown):
-            crown = voxel_downsample(crown, params.volume_voxel_m)[0]
-        v = alpha_complex_volume(crown, params.alpha_m) if len(crown) else float("nan")
+            c = canopy_base_height(mine_v, gp[t], gn[t], trunk_radius_m=r, body_cell_m=params.body_cell_m)
+        v = (canopy_volume(mine_v, gp[t], gn[t], clear_trunk_height_m=c, alpha_m=params.alpha_m,
+                           body_cell_m=params.body_cell_m,
+                           voxel_m=params.volume_voxel_m if params.volume_voxel_m > params.voxel_m else 0.0)
+             if np.isfinite(c) else float("nan"))
         k = rank[t]
         sep = bool((k == 0 or separated[k - 1]) and (k == len(tr) - 1 or separated[k]))
         out.append(TreeMorphology(t, h, v, n_pts, c, sep))

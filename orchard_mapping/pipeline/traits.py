@@ -12,14 +12,18 @@ from __future__ import annotations
 
 import logging
 import time
+from collections.abc import Iterator
 from dataclasses import dataclass, field, replace
 
 import numpy as np
 
 from orchard_mapping.config import OrchardConfig
+from orchard_mapping.core.geometry import move_with_keyframes
+from orchard_mapping.core.segmentation import row_axes
 from orchard_mapping.core.sidemap import SideMap
 from orchard_mapping.core.traits import KIND_GROUND, KIND_POST, KIND_TREE, KIND_WIRE, RowTraits, measure_row
 from orchard_mapping.core.trees import row_direction
+from orchard_mapping.core.trunks import TrunkLandmark, side_up_direction
 from orchard_mapping.io.laz import CLASS, SIDE_CODE
 from orchard_mapping.io.results import ResultTree
 from orchard_mapping.pipeline.merge import MergeOutcome, map_poses, merge_to_trees, ray_in_map
@@ -56,27 +60,29 @@ class RowLabels:
     R_row_map: np.ndarray = field(default_factory=lambda: np.eye(3))  # (3, 3) rows: the row frame's x, y, z in map
 
 
-def _up_in_map(sides: dict[str, SideMap], poses: dict[str, np.ndarray]) -> np.ndarray:
-    """(3,) unit up in map: the mean of the cameras' -y axes (optical frame, y down) of both sides."""
-    up = -np.concatenate([P[:, :3, 1] for P in poses.values()]).mean(axis=0)
-    return up / np.linalg.norm(up)
+def _tree_landmarks(trees: list[ResultTree], sides: dict[str, SideMap]) -> Iterator[tuple[int, str, TrunkLandmark]]:
+    """(tree index, side, that side's trunk landmark) for every side trunk of every tree."""
+    by = {side: {t.id: t for t in sm.trunks} for side, sm in sides.items()}
+    for k, tree in enumerate(trees):
+        for side, own in (tree.per_side or {}).items():
+            lm = by.get(side, {}).get(own.get("trunk_id"))
+            if lm is not None:
+                yield k, side, lm
 
 
 def _tree_grounds(trees: list[ResultTree], sides: dict[str, SideMap], poses: dict[str, np.ndarray],
                   up: np.ndarray) -> np.ndarray:
     """(T, 3) unit up normal of each tree's local ground in map: the mean of the planes its sides fitted,
     carried into map; `up` where no side fitted one."""
-    by = {side: {t.id: t for t in sm.trunks} for side, sm in sides.items()}
+    normals: list[list[np.ndarray]] = [[] for _ in trees]
+    for k, side, lm in _tree_landmarks(trees, sides):
+        if lm.ground is not None:
+            _, n = ray_in_map(lm.ground.point, lm.ground.normal, sides[side], poses[side])
+            normals[k].append(n if n @ up > 0 else -n)
     out = np.tile(up, (len(trees), 1))
-    for k, tree in enumerate(trees):
-        normals = []
-        for side, own in (tree.per_side or {}).items():
-            lm = by.get(side, {}).get(own.get("trunk_id"))
-            if lm is not None and lm.ground is not None:
-                _, n = ray_in_map(lm.ground.point, lm.ground.normal, sides[side], poses[side])
-                normals.append(n if n @ up > 0 else -n)
-        if normals:
-            n = np.mean(normals, axis=0)
+    for k, ns in enumerate(normals):
+        if ns:
+            n = np.mean(ns, axis=0)
             out[k] = n / np.linalg.norm(n)
     return out
 
@@ -91,18 +97,15 @@ def _split_points(trees: list[ResultTree], sides: dict[str, SideMap], poses: dic
                   feet: np.ndarray, normals: np.ndarray) -> np.ndarray:
     """(T, 3) map: each tree's trunk axis (the mean of its sides' axes, carried into map) SPLIT_HEIGHT_M
     above its foot; straight up the ground normal where no side has an axis."""
-    by = {side: {t.id: t for t in sm.trunks} for side, sm in sides.items()}
+    axes: list[list[np.ndarray]] = [[] for _ in trees]
+    for k, side, lm in _tree_landmarks(trees, sides):
+        axis = lm.merge_axis if lm.merge_axis is not None else lm.axis
+        _, a = ray_in_map(lm.base, axis, sides[side], poses[side])
+        axes[k].append(a if a @ normals[k] > 0 else -a)
     out = feet + SPLIT_HEIGHT_M * normals
-    for k, tree in enumerate(trees):
-        axes = []
-        for side, own in (tree.per_side or {}).items():
-            lm = by.get(side, {}).get(own.get("trunk_id"))
-            if lm is not None:
-                axis = lm.merge_axis if lm.merge_axis is not None else lm.axis
-                _, a = ray_in_map(lm.base, axis, sides[side], poses[side])
-                axes.append(a if a @ normals[k] > 0 else -a)
-        if axes:
-            a = np.mean(axes, axis=0)
+    for k, ax in enumerate(axes):
+        if ax:
+            a = np.mean(ax, axis=0)
             a /= np.linalg.norm(a)
             out[k] = feet[k] + a * SPLIT_HEIGHT_M / max(float(a @ normals[k]), 0.5)
     return out
@@ -110,13 +113,10 @@ def _split_points(trees: list[ResultTree], sides: dict[str, SideMap], poses: dic
 
 def _posts_in_map(sides: dict[str, SideMap], poses: dict[str, np.ndarray]) -> tuple[np.ndarray, float]:
     """((P, 3) a point on each post's axis in map, the widest post radius m) of the posts both sides modelled."""
-    places, radii = [], []
-    for side, sm in sides.items():
-        for post in sm.posts:
-            p, _ = ray_in_map(post.place, np.array([0.0, 0.0, 1.0]), sm, poses[side])
-            places.append(p)
-            radii.append(post.radius_m)
-    return np.array(places).reshape(-1, 3), float(max(radii, default=0.0))
+    places = [move_with_keyframes(np.array([p.place for p in sm.posts]).reshape(-1, 3), sm.keyframe_poses,
+                                  poses[side]) for side, sm in sides.items()]
+    radii = [p.radius_m for sm in sides.values() for p in sm.posts]
+    return np.concatenate(places).reshape(-1, 3), float(max(radii, default=0.0))
 
 
 def measure_trees(merged: MergeOutcome, sides: dict[str, SideMap], clouds: dict[str, np.ndarray],
@@ -132,7 +132,7 @@ def measure_trees(merged: MergeOutcome, sides: dict[str, SideMap], clouds: dict[
                      np.full(len(pts), CLASS["none"], np.uint8))
     if not trees or not len(pts):
         return trees, none
-    up = _up_in_map(sides, poses)
+    up = side_up_direction(np.concatenate(list(poses.values())))  # both sides' cameras in map
     feet = np.array([t.position for t in trees], float)  # (T, 3) map
     normals = _tree_grounds(trees, sides, poses, up)
     # the row frame: x along the row (through the feet; the cameras' path for a row of one tree), z up
@@ -141,9 +141,7 @@ def measure_trees(merged: MergeOutcome, sides: dict[str, SideMap], clouds: dict[
     else:
         cams = np.concatenate([P[:, :3, 3] for P in poses.values()])
         along = row_direction(cams)
-    along = along - (along @ up) * up
-    along /= np.linalg.norm(along)
-    R = np.stack([along, np.cross(up, along), up])  # (3, 3) rows: the row frame's axes in map
+    R = row_axes(along, up)  # (3, 3) rows: the row frame's axes in map
     origin = feet.mean(axis=0)
 
     def to_row(p: np.ndarray) -> np.ndarray:
