@@ -18,13 +18,9 @@ import tempfile
 import time
 from pathlib import Path
 
-import numpy as np
-
 from orchard_mapping.config import load_config
-from orchard_mapping.core.geometry import transform_points
-from orchard_mapping.eval.ground_truth import load_ground_truth
-from orchard_mapping.eval.metrics import match_trees
-from orchard_mapping.io.results import portable_json
+from orchard_mapping.eval.evaluate import evaluate_result
+from orchard_mapping.io.results import portable_json, write_trees
 from orchard_mapping.io.sidemap_codec import decode_side_map, encode_side_map
 from orchard_mapping.pipeline.merge import merge_to_trees
 from orchard_mapping.pipeline.side import reconstruct_side
@@ -48,21 +44,14 @@ def _sides(row: Path, scenario: str, seed: int, trees: int, reuse: bool) -> tupl
     return sim, maps
 
 
-def _score(gt, trees: list, radius_m: float) -> dict:
-    """Height MAE (cm), volume MAPE and bias (%) of the trees matched to the truth (as orchard-map evaluate)."""
-    true_xyz = transform_points(np.linalg.inv(gt.sides["front"].T_world_odom),
-                                np.array([t.position for t in gt.trees]).reshape(-1, 3))  # world -> map
-    m = match_trees(true_xyz, np.array([t.position for t in trees]).reshape(-1, 3), radius_m)
-    dh, dv = [], []
-    for i, j in zip(m.true_index.tolist(), m.est_index.tolist(), strict=True):
-        t, e = gt.trees[i], trees[j]
-        if e.height_m is not None:
-            dh.append(100 * (e.height_m - t.height_m))
-        if e.canopy_volume_m3 is not None and t.canopy_volume_m3:
-            dv.append(100 * (e.canopy_volume_m3 - t.canopy_volume_m3) / t.canopy_volume_m3)
-    return {"matched": len(m.true_index), "height_mae_cm": float(np.mean(np.abs(dh))) if dh else None,
-            "volume_mape_pct": float(np.mean(np.abs(dv))) if dv else None,
-            "volume_bias_pct": float(np.mean(dv)) if dv else None}
+def _score(truth: Path, trees: list) -> dict:
+    """The evaluator's trait errors of these trees against the truth (trees.json alone in a scratch folder)."""
+    with tempfile.TemporaryDirectory() as d:
+        write_trees(d, trees, frame="map")
+        rep = evaluate_result(truth, d).to_dict()
+    t = rep["traits"]
+    return {"matched": rep["matching"]["matched"], "height_mae_cm": t["height_mae_cm"],
+            "volume_mape_pct": t["canopy_volume_mape_percent"], "volume_bias_pct": t["canopy_volume_bias_percent"]}
 
 
 def main() -> None:
@@ -80,7 +69,6 @@ def main() -> None:
     for spec in a.rows:
         scenario, seed = spec.split(":")
         sim, maps = _sides(a.workdir / f"{scenario}_{seed}_{a.trees}trees", scenario, int(seed), a.trees, a.reuse)
-        gt = load_ground_truth(sim / "ground_truth.json")
         cfg = load_config()
         merged, clouds, trees = merge_to_trees(maps, cfg)
         for method in ("cutting_planes", "shrink_and_expand", "one_side_doubled"):
@@ -98,7 +86,7 @@ def main() -> None:
             if method == "one_side_doubled":
                 measured = [dataclasses.replace(t, canopy_volume_m3=2 * t.canopy_volume_m3)
                             if t.canopy_volume_m3 is not None else t for t in measured]
-            s = _score(gt, measured, cfg.evaluate.match_radius_m)
+            s = _score(sim / "ground_truth.json", measured)
             rows.append({"row": spec, "method": method, "seconds": secs, **s})
             fmt = lambda v: "n/a" if v is None else f"{v:.2f}"  # noqa: E731
             print(f"| {spec} | {method} | {s['matched']} | {fmt(s['height_mae_cm'])} | {fmt(s['volume_mape_pct'])} "
