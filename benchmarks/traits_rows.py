@@ -6,7 +6,8 @@
 Per row: simulate (seeded), reconstruct both sides once (pipeline.reconstruct_side), then the merge and the
 traits stage with each segmentation (cutting planes, shrink-and-expand) and the practice the paper replaces
 (one side's crown, its volume doubled; its height as it is), scored per tree against ground_truth.json
-(height MAE cm, canopy volume MAPE and bias %) with the traits stage's seconds. One table, one row per
+(height MAE cm, canopy volume MAPE and bias %, the share of points on a tree's surface given to that tree,
+overall and where crowns touch: eval.segmentation) with the traits stage's seconds. One table, one row per
 (row, method).
 """
 
@@ -23,6 +24,7 @@ from orchard_mapping.eval.evaluate import evaluate_result
 from orchard_mapping.io.results import portable_json, write_trees
 from orchard_mapping.io.sidemap_codec import decode_side_map, encode_side_map
 from orchard_mapping.pipeline.merge import merge_to_trees
+from orchard_mapping.pipeline.outputs import write_tree_cloud
 from orchard_mapping.pipeline.side import reconstruct_side
 from orchard_mapping.pipeline.sides import Timings, open_sides
 from orchard_mapping.pipeline.traits import measure_trees
@@ -44,14 +46,19 @@ def _sides(row: Path, scenario: str, seed: int, trees: int, reuse: bool) -> tupl
     return sim, maps
 
 
-def _score(truth: Path, trees: list) -> dict:
-    """The evaluator's trait errors of these trees against the truth (trees.json alone in a scratch folder)."""
+def _score(truth: Path, trees: list, labels) -> dict:
+    """The evaluator's trait errors and per-point segmentation score of these trees against the truth (trees.json
+    and trees.laz in a scratch folder)."""
     with tempfile.TemporaryDirectory() as d:
         write_trees(d, trees, frame="map")
+        write_tree_cloud(Path(d), labels)
         rep = evaluate_result(truth, d).to_dict()
-    t = rep["traits"]
+    t, sg = rep["traits"], rep["segmentation"] or {}
     return {"matched": rep["matching"]["matched"], "height_mae_cm": t["height_mae_cm"],
-            "volume_mape_pct": t["canopy_volume_mape_percent"], "volume_bias_pct": t["canopy_volume_bias_percent"]}
+            "volume_mape_pct": t["canopy_volume_mape_percent"], "volume_bias_pct": t["canopy_volume_bias_percent"],
+            "seg_accuracy_pct": None if sg.get("accuracy") is None else 100 * sg["accuracy"],
+            "seg_touching_pct": None if sg.get("accuracy_near_neighbour") is None
+            else 100 * sg["accuracy_near_neighbour"]}
 
 
 def main() -> None:
@@ -64,8 +71,9 @@ def main() -> None:
     ap.add_argument("--json", type=Path, default=None)
     a = ap.parse_args()
     rows = []
-    print("| row | method | trees | height MAE cm | volume MAPE % | volume bias % | traits s |")
-    print("|---|---|---|---|---|---|---|")
+    print("| row | method | trees | height MAE cm | volume MAPE % | volume bias % | points right % "
+          "| where crowns touch % | traits s |")
+    print("|---|---|---|---|---|---|---|---|---|")
     for spec in a.rows:
         scenario, seed = spec.split(":")
         sim, maps = _sides(a.workdir / f"{scenario}_{seed}_{a.trees}trees", scenario, int(seed), a.trees, a.reuse)
@@ -81,16 +89,17 @@ def main() -> None:
                                                                  cloud_colors=back.cloud_colors[:0])}
                 use_clouds = {**clouds, "back": clouds["back"][:0]}
             t0 = time.perf_counter()
-            measured, _ = measure_trees(merged, use_maps, use_clouds, trees, c)
+            measured, labels = measure_trees(merged, use_maps, use_clouds, trees, c)
             secs = time.perf_counter() - t0
             if method == "one_side_doubled":
                 measured = [dataclasses.replace(t, canopy_volume_m3=2 * t.canopy_volume_m3)
                             if t.canopy_volume_m3 is not None else t for t in measured]
-            s = _score(sim / "ground_truth.json", measured)
+            s = _score(sim / "ground_truth.json", measured, labels)
             rows.append({"row": spec, "method": method, "seconds": secs, **s})
             fmt = lambda v: "n/a" if v is None else f"{v:.2f}"  # noqa: E731
             print(f"| {spec} | {method} | {s['matched']} | {fmt(s['height_mae_cm'])} | {fmt(s['volume_mape_pct'])} "
-                  f"| {fmt(s['volume_bias_pct'])} | {secs:.2f} |", flush=True)
+                  f"| {fmt(s['volume_bias_pct'])} | {fmt(s['seg_accuracy_pct'])} | {fmt(s['seg_touching_pct'])} "
+                  f"| {secs:.2f} |", flush=True)
     if a.json:
         a.json.write_text(portable_json({"benchmark": "traits_rows", "trees": a.trees, "rows": rows}, indent=1))
 

@@ -37,7 +37,14 @@ from orchard_mapping.eval.report import (
     TraitErrors,
     TreePair,
 )
+from orchard_mapping.eval.segmentation import (
+    TREE_SURFACES_NPZ,
+    SegmentationScore,
+    load_tree_surfaces,
+    segmentation_score,
+)
 from orchard_mapping.io.landmarks import GROUNDS_JSON, TRUNKS_JSON, read_grounds, read_trunks
+from orchard_mapping.io.laz import TREES_LAZ, read_laz
 from orchard_mapping.io.results import (
     SIDE_MERGE_JSON,
     TIMINGS_JSON,
@@ -267,6 +274,22 @@ def _timings_part(gt: GroundTruth, result_dir: Path) -> TimingSummary:
     )
 
 
+def _segmentation_part(truth_dir: Path, result_dir: Path, pairs: tuple[TreePair, ...], T_front_world: np.ndarray,
+                       skipped: dict[str, str]) -> SegmentationScore | None:
+    surfaces, laz = truth_dir / TREE_SURFACES_NPZ, result_dir / TREES_LAZ
+    for path in (surfaces, laz):
+        if not path.is_file():
+            skipped["segmentation"] = f"{path.name} absent"
+            return None
+    if not pairs:
+        skipped["segmentation"] = "no matched tree"
+        return None
+    pts, tree = load_tree_surfaces(surfaces)
+    cloud = read_laz(laz)
+    return segmentation_score(cloud["points"], cloud["tree_id"], pts, tree, T_front_world,
+                              {p.true_id: p.result_id for p in pairs})
+
+
 def evaluate_result(
     truth_path: str | Path,
     result_dir: str | Path,
@@ -372,6 +395,8 @@ def evaluate_result(
     else:
         skipped["trunks"] = f"{TRUNKS_JSON} absent"
 
+    segmentation = _segmentation_part(Path(truth_path).parent, result_dir, pairs, T_front_world, skipped)
+
     timings = None
     if (result_dir / TIMINGS_JSON).is_file():
         timings = _timings_part(gt, result_dir)
@@ -396,4 +421,5 @@ def evaluate_result(
         trunks=trunks_e,
         grounds=grounds_e,
         trunk_axis_gap_mm=gaps,
+        segmentation=segmentation,
     )

@@ -152,6 +152,9 @@ class EvaluationReport:
     # The same with each side's keyframes limited to the sweep that saw its trunks (its first to its last
     # trunk observation): what the merge placed, a side's other sweeps' own drift left out.
     merge_map_trunk_sweep: MergeError | None = None
+    # Each point of trees.laz against the tree whose surface it lies on (eval.segmentation); None without
+    # the simulator's tree_surfaces.npz or the result's trees.laz.
+    segmentation: Any = None
 
     def to_dict(self) -> dict[str, Any]:
         """JSON-serialisable; every key is always present (null where not evaluated)."""
@@ -164,6 +167,7 @@ class EvaluationReport:
             "traits": _plain(self.traits),
             "fruit_count": _plain(self.fruit_count),
             "double_count": _plain(self.double_count),
+            "segmentation": _plain(self.segmentation),
             "merge": None if self.merge is None else {**_plain(self.merge),
                                                       "trunk_axis_gap_mm": self.trunk_axis_gap_mm,
                                                       "map": _plain(self.merge_map),
@@ -211,6 +215,18 @@ class EvaluationReport:
                     "%",
                     f"mean absolute; signed {_fmt(t.canopy_volume_bias_percent, 1, True)} %; {t.canopy_volume_n} trees",
                 ),
+            ]
+        sg = self.segmentation
+        if sg is None:
+            na("segmentation accuracy", "segmentation")
+        else:
+            rows += [
+                ("segmentation accuracy", _fmt(100.0 * sg.accuracy, 1), "%",
+                 f"{sg.n_points} points on matched trees' surfaces (within {100 * sg.tolerance_m:g} cm); "
+                 f"{_fmt(100.0 * sg.unassigned, 1)} % given to no tree"),
+                ("segmentation accuracy where crowns touch",
+                 "n/a" if sg.accuracy_near_neighbour is None else _fmt(100.0 * sg.accuracy_near_neighbour, 1), "%",
+                 f"{sg.n_near_neighbour} points with another tree's surface within 0.3 m"),
             ]
         f = self.fruit_count
         if f is None:

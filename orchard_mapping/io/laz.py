@@ -21,6 +21,7 @@ from orchard_mapping.errors import OrchardMappingError
 __all__ = ["CLASS", "LAZ_SCALE_M", "SIDE_CODE", "read_laz", "write_laz"]
 
 # per-point class codes: ASPRS LAS 1.4 where it has one, the user range (64-255) for the orchard's own
+TREES_LAZ = "trees.laz"  # its name in a result folder
 CLASS = {"none": 1, "ground": 2, "canopy": 5, "wire": 14, "trunk": 64, "post": 65, "fruit": 66}
 SIDE_CODE = {"front": 0, "back": 1}
 LAZ_SCALE_M = 1e-4  # m per coordinate unit: 0.1 mm, far below the depth noise (mm at 1 m)

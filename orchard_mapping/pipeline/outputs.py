@@ -16,7 +16,7 @@ from orchard_mapping.core.sidemap import SideMap
 from orchard_mapping.core.types import StampedTrajectory
 from orchard_mapping.io.figures import RowView, write_row_png, write_tree_png
 from orchard_mapping.io.landmarks import GROUNDS_JSON, TRUNKS_JSON, write_grounds, write_trunks
-from orchard_mapping.io.laz import write_laz
+from orchard_mapping.io.laz import TREES_LAZ, write_laz
 from orchard_mapping.io.results import (
     SIDE_MERGE_JSON,
     TREES_CSV,
@@ -30,7 +30,7 @@ from orchard_mapping.pipeline.merge import MergeOutcome, clouds_in_map, map_pose
 from orchard_mapping.pipeline.traits import RowLabels
 
 # What a merge writes into the result folder (docs/results.md).
-MERGED_PLY, ROW_PNG, TREES_LAZ, TREE_FIGURES = "merged.ply", "row.png", "trees.laz", "trees"
+MERGED_PLY, ROW_PNG, TREE_FIGURES = "merged.ply", "row.png", "trees"
 
 
 MERGE_OUTPUTS = (SIDE_MERGE_JSON, TREES_JSON, TREES_CSV, map_trajectory_filename("*"), MERGED_PLY, ROW_PNG,

@@ -3,6 +3,7 @@
 Output folder layout (docs/ground_truth.md):
   OUT/front/, OUT/back/       rosbag2 (MCAP) per side; `loop` mode writes one OUT/loop/ bag instead
   OUT/ground_truth.json       the truth, from the scene description
+  OUT/tree_surfaces.npz       the trees' surfaces as points with their tree id (per-point segmentation truth)
   OUT/masks/<side>/*.png      16-bit instance masks (trunks, fruit, posts) every `masks_every` frames
 """
 
@@ -32,11 +33,13 @@ from orchard_mapping.sim.truth import (
     CANOPY_VOLUME_DEFINITION,
     DIAMETER_DEFINITION,
     HEIGHT_DEFINITION,
+    TREE_SURFACES_NPZ,
     VisibilityAccumulator,
     alpha_complex_volume,
     diameter_at_height,
     tree_height,
     trunk_axis_at_height,
+    write_tree_surfaces,
 )
 
 log = logging.getLogger(__name__)
@@ -269,6 +272,7 @@ def simulate(sc: Scenario, seed: int, out_dir: str | Path, *, force: bool = Fals
         "T_front_back": np.round(np.linalg.inv(T_world_odom["front"]) @ T_world_odom["back"], 9).tolist(),
         "scenario_config": sc.model_dump(mode="json"),
     }
+    write_tree_surfaces(scene, out / TREE_SURFACES_NPZ)  # before the truth file: its presence means "complete"
     truth_path = out / "ground_truth.json"
     atomic_write_text(truth_path, json.dumps(truth, indent=1))
     log.info("simulated %s: %s", out, frames)

@@ -7,10 +7,13 @@ proved against analytic solids by its own tests.
 
 from __future__ import annotations
 
+from pathlib import Path
+
 import numpy as np
 
 from orchard_mapping.core.canopy import alpha_complex_volume as alpha_complex_volume  # re-exported: sim.simulate
 from orchard_mapping.core.types import CameraIntrinsics
+from orchard_mapping.eval.segmentation import TREE_SURFACES_NPZ as TREE_SURFACES_NPZ  # re-exported: sim.simulate
 from orchard_mapping.sim.render import RenderOutput
 from orchard_mapping.sim.scene import Cls, Scene, TreeGeom, terrain_plane
 
@@ -173,3 +176,50 @@ class VisibilityAccumulator:
 
 def tree_height(tree: TreeGeom) -> float:
     return float((tree.top_z_point - tree.ground_point) @ tree.ground_normal)
+
+
+# Per-point segmentation truth: every surface near the row (the trees' trunks, branches, leaves and fruit with
+# their tree id; ground, posts, wires and weeds as -1) as points, so that the evaluator can give each
+# reconstructed point the surface it lies on. Triangle corners and centres, plus area samples on triangles
+# larger than SURFACE_SAMPLE_M squared: a leaf (5-8 cm) keeps its corners and centre, a post or the terrain
+# (long, large triangles) gets a sample every ~3 cm, so a point is never nearest a far-off corner.
+SURFACE_SAMPLE_M = 0.03
+_TREE_PARTS = (Cls.TRUNK, Cls.BRANCH, Cls.LEAF)
+_OTHER_PARTS = (Cls.GROUND, Cls.POST, Cls.WIRE, Cls.WEED)  # hedges (the next rows) and sky left out
+
+
+def tree_surface_samples(scene: Scene, seed: int = 0) -> tuple[np.ndarray, np.ndarray]:
+    """(N, 3) float32 world points on the row's surfaces (rest positions) and (N,) int16: the tree id of each,
+    -1 where the surface is not a tree's (ground, post, wire, weed)."""
+    owner = np.full(len(scene.triangles), -2, dtype=np.int64)  # (T,) -2: not sampled
+    part = np.isin(scene.tri_cls, [int(c) for c in _TREE_PARTS])
+    owner[part] = scene.tri_inst[part]
+    fruit = scene.tri_cls == int(Cls.FRUIT)
+    fruit_tree = np.array([f.tree for f in scene.fruit] + [-1], dtype=np.int64)  # (F + 1,)
+    owner[fruit] = fruit_tree[scene.tri_inst[fruit]]
+    owner[np.isin(scene.tri_cls, [int(c) for c in _OTHER_PARTS])] = -1
+    keep = owner >= -1
+    tris, own = scene.triangles[keep], owner[keep]  # (K, 3), (K,)
+    corners = scene.vertices[tris]  # (K, 3, 3)
+    # each vertex belongs to one mesh part: the first triangle that uses it names its owner
+    v_ids, first = np.unique(tris.ravel(), return_index=True)
+    v_owner = np.repeat(own, 3)[first]
+    area = 0.5 * np.linalg.norm(np.cross(corners[:, 1] - corners[:, 0], corners[:, 2] - corners[:, 0]), axis=1)
+    n_extra = np.floor(area / SURFACE_SAMPLE_M**2).astype(np.int64)  # (K,)
+    rng = np.random.default_rng(seed)
+    which = np.repeat(np.arange(len(tris)), n_extra)  # (E,)
+    u, v = rng.random((2, len(which)))
+    flip = u + v > 1.0
+    u[flip], v[flip] = 1.0 - u[flip], 1.0 - v[flip]
+    c = corners[which]
+    extra = c[:, 0] + u[:, None] * (c[:, 1] - c[:, 0]) + v[:, None] * (c[:, 2] - c[:, 0])  # (E, 3)
+    pts = np.concatenate([scene.vertices[v_ids], corners.mean(axis=1), extra]).astype(np.float32)
+    return pts, np.concatenate([v_owner, own, own[which]]).astype(np.int16)
+
+
+def write_tree_surfaces(scene: Scene, path: Path) -> None:
+    """The surface samples as a compressed npz (points, tree), written atomically."""
+    pts, tree = tree_surface_samples(scene)
+    tmp = path.with_name(path.name + ".tmp.npz")
+    np.savez_compressed(tmp, points=pts, tree=tree)
+    tmp.replace(path)

@@ -62,7 +62,8 @@ def test_exact_result_scores_zero(truth_path: Path, result_dir: Path) -> None:
         assert e.ate_percent == pytest.approx(0.0, abs=1e-9)
     assert rep.timings is not None and rep.timings.total_s == pytest.approx(4.0)
     assert rep.timings.realtime_factor == pytest.approx(1.0)
-    assert rep.skipped == {"trunks": "trunks.json absent"}  # trunks and grounds: test_eval_landmarks.py
+    # trunks and grounds: test_eval_landmarks.py; per-point segmentation: test_eval_segmentation.py
+    assert rep.skipped == {"trunks": "trunks.json absent", "segmentation": "tree_surfaces.npz absent"}
     assert len(rep.pairs) == 3 and {(p.true_id, p.result_id) for p in rep.pairs} == {(0, 10), (1, 11), (2, 12)}
 
 
@@ -87,6 +88,7 @@ def test_to_dict_is_json_with_stable_keys(truth_path: Path, result_dir: Path, tm
         "sides.back",
         "trunks",
         "timings",
+        "segmentation",
     }
 
 
@@ -365,7 +367,7 @@ def test_partial_folder_and_timing_fallback(truth_path: Path, result_dir: Path) 
     assert rep.merge is None and rep.sides["back"] is None and rep.sides["front"] is not None
     # trees.csv still there: matching works, fruit positions (json only) do not
     assert rep.matching is not None and rep.matching.matched == 3 and rep.double_count is None
-    assert set(rep.skipped) == {"merge", "sides.back", "double_count", "trunks"}
+    assert set(rep.skipped) == {"merge", "sides.back", "double_count", "trunks", "segmentation"}
     assert rep.timings is not None and rep.timings.recording_duration_source == "ground truth"
     assert rep.timings.realtime_factor == pytest.approx(2.0 / (30 / 15.0 * 2))
     assert "n/a" in _render(rep.table())

@@ -194,3 +194,29 @@ def test_trunk_radii_takes_the_scenarios_trunk_spec_by_its_annotated_type():
     radii = scene_module.trunk_radii(np.random.default_rng(0), oval, s, r_mean, 20)
     assert radii.shape == (5, 20)
     assert radii.max() == pytest.approx(0.04 * 1.08, rel=0.02)
+
+
+def test_surface_samples_name_each_tree_and_cover_its_surface(big_row):
+    """tree_surface_samples: every tree's mesh vertex lies on a sample of that tree; posts and ground are -1 and
+    sampled densely enough (<= 3 cm apart on a post) that no point of them is nearer a leaf corner."""
+    from scipy.spatial import cKDTree
+
+    from orchard_mapping.sim.truth import SURFACE_SAMPLE_M, tree_surface_samples
+
+    pts, tree = tree_surface_samples(big_row)
+    assert pts.dtype == np.float32 and tree.shape == (len(pts),)
+    assert set(np.unique(tree).tolist()) == {-1, *range(N_BIG)}
+    kd = cKDTree(pts)
+    for t in big_row.trees[:3]:
+        v = _tree_vertices(big_row, t)
+        d, k = kd.query(v)
+        assert np.all(d < 1e-5) and np.all(tree[k] == t.id)
+    post = big_row.vertices[np.unique(big_row.triangles[big_row.tri_cls == Cls.POST])]
+    _, k = kd.query(post)
+    assert np.all(tree[k] == -1)
+    # along a post's height (long triangles) samples are no farther apart than ~SURFACE_SAMPLE_M
+    pp = pts[tree == -1]
+    p0 = post[0]
+    near = pp[np.linalg.norm(pp[:, :2] - p0[:2], axis=1) < 0.08]
+    gaps = np.diff(np.sort(near[:, 2]))
+    assert len(near) > 50 and gaps.max() < 2 * SURFACE_SAMPLE_M
