@@ -85,3 +85,17 @@ class SideMap:
     trunks: list = field(default_factory=list)
     # trellis posts seen (core.posts.PostLandmark): they tie the side's sweeps in the semantic BA
     posts: list = field(default_factory=list)
+
+
+@dataclass(frozen=True)
+class SideGeometry:
+    """One side once fused, before its trunks: what fitting its trunks' local grounds reads
+    (core.trunks.fit_side_grounds). The live odometry node sends it to the local_ground_fitter node."""
+
+    side: str  # "front" / "back"
+    frame_id: str  # odom_<side>
+    stamp: float  # s, the side's last keyframe (the side map's stamp)
+    intrinsics: CameraIntrinsics
+    keyframe_poses: np.ndarray  # (K, 4, 4) optimised T_odom_cam (the side's up direction)
+    cloud_points: np.ndarray  # (P, 3) float32 fused dense cloud, odom
+    views: list  # core.trunks.TrunkView: the keyframes given to the detector, their depth and detections

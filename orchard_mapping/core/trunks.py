@@ -18,6 +18,12 @@ keyframes spaced along the path: raw, or cleaned by fusion) and the trunk detect
    (3D term plus the 2D terms of every detection that sees the band); its
    diameter is the trunk diameter. The 3D-only fit is the baseline.
 
+Two steps, each with one implementation: `fit_side_grounds` does 1-4 (a `TrunkGround` per landmark: its
+detections, points, coarse axis and grounds), `fit_trunk_cylinders` does 5 against those grounds.
+`orchard-map run` calls both in one process (`build_trunk_landmarks`); the live graph fits the grounds in
+the local_ground_fitter node and the cylinders in the odometry node's side finish. Each landmark's fits
+draw from random streams of their own (the seed, the step, the landmark), so the split draws the same.
+
 A trunk whose band has too few points or views is reported hidden at the
 diameter height (flag), with no diameter: never a made-up cylinder.
 Frames: everything in odom_<side> (metres) unless a name says `_cam`.
@@ -47,11 +53,14 @@ from orchard_mapping.errors import OrchardMappingError
 
 __all__ = [
     "TrunkError",
+    "TrunkGround",
     "TrunkLandmark",
     "TrunkObservation",
     "TrunkParams",
     "TrunkView",
     "build_trunk_landmarks",
+    "fit_side_grounds",
+    "fit_trunk_cylinders",
     "ground_around_trunk",
     "side_up_direction",
 ]
@@ -340,33 +349,80 @@ def _wide_ground(points: np.ndarray, o_bottom: np.ndarray, trunk: Cylinder, grou
                                                                  **WIDE_GROUND_REFIT), rng)
 
 
-def build_trunk_landmarks(points: np.ndarray, poses: np.ndarray, views: list[TrunkView], intr: CameraIntrinsics,
-                          params: TrunkParams, ground_params: GroundParams, rng: np.random.Generator
-                          ) -> list[TrunkLandmark]:
-    """Trunk landmarks with their local grounds from one side's fused cloud (P, 3) and detections.
+@dataclass(frozen=True)
+class TrunkGround:
+    """The first step of modelling one trunk landmark (`fit_side_grounds`): which detections are the trunk, its
+    points, the whole trunk's coarse axis and the ground under the tree. The second step, the band's cylinder
+    (`fit_trunk_cylinders`), reads only this, the cloud and the views: the live graph fits the grounds in the
+    local_ground_fitter node and sends them over (orchard_mapping_msgs/LocalGround, float64: exact)."""
 
-    poses (K, 4, 4): the side's keyframe poses (for the up direction); views: the detector's frames.
-    """
+    id: int  # the trunk landmark's id, 0.. along the side
+    detections: tuple[tuple[int, int], ...]  # (index into the side's views, index into that view's detections)
+    point_indices: np.ndarray  # (N,) int: the trunk's fused points (mask segmentation), indices into the cloud
+    coarse: Cylinder  # the whole trunk's cylinder (3D RANSAC): the landmark's axis
+    bottom_m: float  # m along coarse.axis: the trunk's lowest surface point (1st percentile of its points)
+    top_m: float  # m along coarse.axis: its highest (99th percentile)
+    ground: LocalGroundFit | None  # the tree's local ground
+    # Without a local ground: the ground over ground.wide_radius_m, for the diameter height and the foot only
+    # (not the tree's local ground, never reported as one); None with a local ground.
+    wide_ground: LocalGroundFit | None = None
+
+
+# The random streams of the two steps, one per trunk (numpy seeds (seed, step, trunk)): a landmark's fits do not
+# depend on the other landmarks' draws, so the live graph, which fits all grounds in one node and all bands in
+# another, draws what `orchard-map run` draws.
+_GROUND_STREAM = 1
+_BAND_STREAM = 2
+
+
+def _stream(seed: int, step: int, k: int) -> np.random.Generator:
+    return np.random.default_rng((int(seed), step, int(k)))
+
+
+def _cloud(points: np.ndarray) -> np.ndarray:
     points = np.asarray(points, float)
     if points.ndim != 2 or points.shape[1] != 3:
         raise TrunkError(f"the fused cloud must have shape (P, 3), got {points.shape}")
+    return points
+
+
+def _detection_points(v: TrunkView, det: Detection, intr: CameraIntrinsics) -> np.ndarray:
+    """(M, 3) odom: the depth pixels of one detection's mask."""
+    return _backproject(np.asarray(v.depth), np.asarray(det.mask), intr, v.T_odom_cam)
+
+
+def build_trunk_landmarks(points: np.ndarray, poses: np.ndarray, views: list[TrunkView], intr: CameraIntrinsics,
+                          params: TrunkParams, ground_params: GroundParams, seed: int) -> list[TrunkLandmark]:
+    """Trunk landmarks with their local grounds from one side's fused cloud (P, 3) and detections: the two
+    steps, `fit_side_grounds` then `fit_trunk_cylinders`, in this process.
+
+    poses (K, 4, 4): the side's keyframe poses (for the up direction); views: the detector's frames.
+    """
+    grounds = fit_side_grounds(points, poses, views, intr, params, ground_params, seed)
+    return fit_trunk_cylinders(points, views, intr, params, grounds, seed)
+
+
+def fit_side_grounds(points: np.ndarray, poses: np.ndarray, views: list[TrunkView], intr: CameraIntrinsics,
+                     params: TrunkParams, ground_params: GroundParams, seed: int) -> list[TrunkGround]:
+    """Steps 1-4 of the module docstring for one side: the trunk landmarks (association, segmentation), each
+    one's coarse axis and the ground under it, ordered along the path. points (P, 3) the fused cloud, poses
+    (K, 4, 4) the keyframe poses (for the up direction), views the detector's frames."""
+    points = _cloud(points)
     up = side_up_direction(np.asarray(poses, float))
     # 1. place every trunk detection
-    dets: list[tuple[TrunkView, Detection]] = []
+    dets: list[tuple[int, int]] = []  # (view, detection) indices
     places = []
     det_points: list[np.ndarray] = []
-    view_points: list[np.ndarray] = []  # each detection's depth pixels in odom, thinned (the merge axis)
-    for v in views:
-        for det in v.detections:
+    for vi, v in enumerate(views):
+        for di, det in enumerate(v.detections):
             if det.class_id != CLASS_TRUNK or int(det.mask.sum()) < params.min_mask_pixels:
                 continue
-            P = _backproject(np.asarray(v.depth), np.asarray(det.mask), intr, v.T_odom_cam)
+            P = _detection_points(v, det, intr)
             if len(P) < params.min_mask_pixels // 3:
                 continue
-            dets.append((v, det))
+            dets.append((vi, di))
             places.append(np.median(P, axis=0))
             det_points.append(P[:: max(1, len(P) // 500)])
-            view_points.append(P[:: max(1, len(P) // _VIEW_POINTS_PER_DETECTION)])
     if not dets:
         return []
     label = associate_places(np.asarray(places), up, params.associate_radius_m)
@@ -379,41 +435,42 @@ def build_trunk_landmarks(points: np.ndarray, poses: np.ndarray, views: list[Tru
     reach = max(ground_params.radius_m, ground_params.wide_radius_m, params.associate_radius_m) + 0.1 + _SLAB_MARGIN_M
     # order landmarks along the path: by the first keyframe that saw them
     groups = sorted((np.flatnonzero(label == k) for k in range(label.max() + 1)),
-                    key=lambda g: min(dets[i][0].keyframe for i in g))
-    out: list[TrunkLandmark] = []
-    for members in groups:
+                    key=lambda g: min(views[dets[i][0]].keyframe for i in g))
+    out: list[TrunkGround] = []
+    for k, members in enumerate(groups):
         if len(members) < params.min_observations:
             continue
         # the tree's stretch of the row: its neighbourhood and wide ground lie within `reach` of its centre
         # across the row, and a trunk axis tilts by at most max_axis_angle_deg over the tree's height
-        nearby = points[index.slab(np.median(np.asarray(places)[members], axis=0), reach)]
-        lm = _model_trunk(len(out), [dets[i] for i in members], np.asarray(places)[members], nearby, up, intr,
-                          params, ground_params, rng, np.concatenate([view_points[i] for i in members]))
-        if lm is not None:
-            out.append(lm)
+        slab = index.slab(np.median(np.asarray(places)[members], axis=0), reach)
+        g = _trunk_ground(len(out), [dets[i] for i in members], views, np.asarray(places)[members], points, slab, up,
+                          intr, params, ground_params, _stream(seed, _GROUND_STREAM, k))
+        if g is not None:
+            out.append(g)
     return out
 
 
-def _model_trunk(lm_id: int, obs: list[tuple[TrunkView, Detection]], places: np.ndarray, points: np.ndarray,
-                 up: np.ndarray, intr: CameraIntrinsics, params: TrunkParams, ground_params: GroundParams,
-                 rng: np.random.Generator, view_points: np.ndarray) -> TrunkLandmark | None:
+def _trunk_ground(lm_id: int, members: list[tuple[int, int]], views: list[TrunkView], places: np.ndarray,
+                  cloud: np.ndarray, slab: np.ndarray, up: np.ndarray, intr: CameraIntrinsics, params: TrunkParams,
+                  ground_params: GroundParams, rng: np.random.Generator) -> TrunkGround | None:
+    """One landmark's segmentation, coarse axis and grounds (None: too few trunk points, or no axis).
+    slab: the indices of the cloud's points in the tree's stretch of the row."""
+    points = cloud[slab]
     centre = np.median(places, axis=0)  # (3,)
     rel = points - centre
     radial = np.linalg.norm(rel - np.outer(rel @ up, up), axis=1)
     near = np.flatnonzero(radial < max(ground_params.radius_m, params.associate_radius_m) + 0.1)
     local = points[near]  # (L, 3) the tree's neighbourhood
+    obs = [(views[vi], views[vi].detections[di]) for vi, di in members]
     trunk_sel = _select_by_masks(local, obs, intr, params.visibility_tol_m)
     trunk = local[trunk_sel]
-    flags: list[str] = []
     if len(trunk) < params.min_band_points:
         return None  # a few stray pixels: not a trunk we can model
-    normals = _normals(trunk)
-    radius_range = (params.radius_min_m, params.radius_max_m)
     try:  # 3. coarse axis from the whole trunk
-        coarse = fit_cylinder(trunk, normals, [], intr, rng, up=up, threshold_m=params.ransac_threshold_m,
+        coarse = fit_cylinder(trunk, _normals(trunk), [], intr, rng, up=up, threshold_m=params.ransac_threshold_m,
                               iterations=params.ransac_iterations, max_axis_angle_deg=params.max_axis_angle_deg,
-                              radius_range_m=radius_range, use_2d=False, sigma_3d_m=params.sigma_3d_m,
-                              huber_k=params.huber_k)
+                              radius_range_m=(params.radius_min_m, params.radius_max_m), use_2d=False,
+                              sigma_3d_m=params.sigma_3d_m, huber_k=params.huber_k)
     except CylinderError:
         return None
     axis = coarse.cylinder.axis
@@ -421,16 +478,51 @@ def _model_trunk(lm_id: int, obs: list[tuple[TrunkView, Detection]], places: np.
     h_axis = trunk @ axis
     h_bottom = float(np.percentile(h_axis[on_trunk], 1)) if on_trunk.any() else float(h_axis.min())
     h_top = float(np.percentile(h_axis[on_trunk], 99)) if on_trunk.any() else float(h_axis.max())
-    origin = coarse.cylinder.origin
     # 4. local ground with the trunk axis prior; the trunk's own surface is never ground
-    o_bottom = origin + (h_bottom - origin @ axis) * axis
+    o_bottom = _axis_at(coarse.cylinder, h_bottom)
     ground = ground_around_trunk(local, o_bottom, coarse.cylinder, ground_params, rng)
+    wide = _wide_ground(points, o_bottom, coarse.cylinder, ground_params, rng) if ground is None else None
+    return TrunkGround(lm_id, tuple((int(vi), int(di)) for vi, di in members), slab[near][trunk_sel],
+                       coarse.cylinder, h_bottom, h_top, ground, wide)
+
+
+def _axis_at(c: Cylinder, h: float) -> np.ndarray:
+    """(3,) the axis point at height h along the axis (p . axis = h)."""
+    return c.origin + (h - c.origin @ c.axis) * c.axis
+
+
+def fit_trunk_cylinders(points: np.ndarray, views: list[TrunkView], intr: CameraIntrinsics, params: TrunkParams,
+                        grounds: list[TrunkGround], seed: int) -> list[TrunkLandmark]:
+    """Step 5 of the module docstring: each landmark's band cylinder (eq. objectCylinder) at the diameter height
+    above its ground, its foot, merge axis and views; `grounds` from `fit_side_grounds` on the same cloud
+    (P, 3) and views (in this process or another)."""
+    points = _cloud(points)
+    return [_fit_band(g, points, views, intr, params, _stream(seed, _BAND_STREAM, g.id)) for g in grounds]
+
+
+def _fit_band(g: TrunkGround, cloud: np.ndarray, views: list[TrunkView], intr: CameraIntrinsics,
+              params: TrunkParams, rng: np.random.Generator) -> TrunkLandmark:
+    try:
+        obs = [(views[vi], views[vi].detections[di]) for vi, di in g.detections]
+        trunk = cloud[np.asarray(g.point_indices, np.int64)]
+    except IndexError as err:
+        raise TrunkError(f"trunk landmark {g.id}: its ground's detections or points are not in this side's views "
+                         f"({len(views)}) and cloud ({len(cloud)} points): {err}") from err
+    # each detection's depth pixels in odom, thinned (the merge axis)
+    view_points = np.concatenate([P[:: max(1, len(P) // _VIEW_POINTS_PER_DETECTION)]
+                                  for P in (_detection_points(v, det, intr) for v, det in obs)])
+    normals = _normals(trunk)
+    radius_range = (params.radius_min_m, params.radius_max_m)
+    flags: list[str] = []
+    coarse, axis, h_bottom, h_top = g.coarse, g.coarse.axis, g.bottom_m, g.top_m
+    o_bottom = _axis_at(coarse, h_bottom)
+    ground = g.ground
     h_lo, h_hi = params.diameter_height_m - params.band_m / 2, params.diameter_height_m + params.band_m / 2
     height_ground = ground  # the plane the diameter height is measured from
     base = o_bottom if ground is None else ground.point
     if ground is None:
         flags.append("no_ground")
-        height_ground = _wide_ground(points, o_bottom, coarse.cylinder, ground_params, rng)
+        height_ground = g.wide_ground
         if height_ground is not None:
             flags.append("diameter_height_from_wide_ground")
             # the foot on the wider ground rather than the lowest trunk point seen: grass or weeds may hide
@@ -443,7 +535,7 @@ def _model_trunk(lm_id: int, obs: list[tuple[TrunkView, Detection]], places: np.
     # where a mask most likely takes in ground or grass (merged standard row: 0.259 -> 0.245 deg).
     above = (height_ground.height_of(view_points) if height_ground is not None
              else view_points @ axis - h_bottom) > FOOT_CLEARANCE_M
-    cone, taper = refine_cone_axis(view_points[above], coarse.cylinder, threshold_m=2 * params.ransac_threshold_m,
+    cone, taper = refine_cone_axis(view_points[above], coarse, threshold_m=2 * params.ransac_threshold_m,
                                    sigma_m=params.sigma_3d_m, huber_k=params.huber_k)
     # Without any ground the diameter height is unknown: no diameter rather than one at a guessed height.
     band_h = np.full(len(trunk), np.nan) if height_ground is None else height_ground.height_of(trunk)
@@ -487,7 +579,7 @@ def _model_trunk(lm_id: int, obs: list[tuple[TrunkView, Detection]], places: np.
         n, d = height_ground.normal, height_ground.offset
         try:
             at_height = band.cylinder.point_at_height(n, d, params.diameter_height_m)
-            off = at_height - coarse.cylinder.origin
+            off = at_height - coarse.origin
             off -= (off @ axis) * axis
             if np.linalg.norm(off) <= BAND_AGREEMENT_M:
                 base = Cylinder(cone.axis, at_height, cone.radius).point_at_height(n, d, 0.0)
@@ -498,7 +590,7 @@ def _model_trunk(lm_id: int, obs: list[tuple[TrunkView, Detection]], places: np.
         cyl_cam = band.cylinder.transformed(np.linalg.inv(v.T_odom_cam)) if band is not None else None
         observations.append(TrunkObservation(v.keyframe, v.stamp, det, cyl_cam, n_band))
     length = float(h_top - (base @ axis))
-    return TrunkLandmark(id=lm_id, axis=axis, base=base, length_m=length, ground=ground, band=band,
+    return TrunkLandmark(id=g.id, axis=axis, base=base, length_m=length, ground=ground, band=band,
                          diameter_m=2.0 * band.cylinder.radius if band is not None else None,
                          baseline_band=baseline, n_points=len(trunk), observations=observations, flags=flags,
                          band_points=trunk[in_band] if band is not None else None,

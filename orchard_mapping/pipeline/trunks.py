@@ -1,4 +1,5 @@
-"""Trunk and post modelling of one side once its cloud is fused (`model_trunks`, `fit_posts`), the two-side
+"""Trunk and post modelling of one side once its cloud is fused (`model_trunks`: its grounds, `fit_grounds`,
+then its cylinders; `fit_posts`), the two-side
 diameter of a paired tree (`two_side_diameter`), the configured trunk detector, and the worker process that runs
 these jobs beside the main one (`TrunkWorker`: its jobs, `TrunkJob` and `BandPair`, pickle)."""
 
@@ -15,8 +16,15 @@ import numpy as np
 from orchard_mapping.config import OrchardConfig
 from orchard_mapping.core.cylinder import CylinderError, fit_cylinders_shared_radius
 from orchard_mapping.core.posts import build_post_landmarks, fit_post_view, separate_trunks_from_posts
-from orchard_mapping.core.sidemap import SideMap
-from orchard_mapping.core.trunks import TrunkLandmark, TrunkParams, TrunkView, build_trunk_landmarks
+from orchard_mapping.core.sidemap import SideGeometry, SideMap
+from orchard_mapping.core.trunks import (
+    TrunkGround,
+    TrunkLandmark,
+    TrunkParams,
+    TrunkView,
+    fit_side_grounds,
+    fit_trunk_cylinders,
+)
 from orchard_mapping.core.types import CameraIntrinsics, ImagePatch
 from orchard_mapping.pipeline.sides import Timings
 
@@ -84,6 +92,11 @@ class TrunkJob:
     intrinsics: CameraIntrinsics
     cfg: OrchardConfig
 
+    def geometry(self) -> SideGeometry:
+        """What fitting the side's grounds reads (`fit_grounds`; the live graph sends it to its ground fitter)."""
+        return SideGeometry(self.side, getattr(self.cfg.frames, f"odom_{self.side}"), float(self.stamps[-1]),
+                            self.intrinsics, self.poses, self.points, self.views)
+
 
 @dataclass(frozen=True)
 class TrunkModel:
@@ -117,10 +130,21 @@ def fit_posts(job: TrunkJob) -> PostModel:
     return PostModel(posts, len(fits), time.perf_counter() - t0)
 
 
-def model_trunks(job: TrunkJob, post_model: "Callable[[], PostModel] | None" = None) -> TrunkModel:
+def fit_grounds(geometry: SideGeometry, cfg: OrchardConfig) -> list[TrunkGround]:
+    """The side's trunk landmarks with their coarse axes and local grounds (core.trunks.fit_side_grounds): the
+    first step of `model_trunks` (on `TrunkJob.geometry()`), and what the live graph's local_ground_fitter node
+    publishes."""
+    return fit_side_grounds(geometry.cloud_points, geometry.keyframe_poses, geometry.views, geometry.intrinsics,
+                            cfg.trunks, cfg.ground, cfg.seed)
+
+
+def model_trunks(job: TrunkJob, post_model: "Callable[[], PostModel] | None" = None,
+                 grounds: "list[TrunkGround] | None" = None) -> TrunkModel:
     """Post landmarks from the post views, trunk landmarks with their local grounds from the fused cloud and the
     trunk views; a trunk that is a post is set aside. Pure: the same job gives the same model in any process.
-    post_model: the posts fitted elsewhere (called once the trunks are modelled), instead of here first."""
+    post_model: the posts fitted elsewhere (called once the trunks are modelled), instead of here first.
+    grounds: the landmarks' grounds fitted elsewhere (`fit_grounds` on this job, in the local_ground_fitter
+    node), instead of here: only the trunk cylinders are fitted then."""
     cfg, side = job.cfg, job.side
     seconds: dict[str, float] = {}
     warnings: list[str] = []
@@ -137,8 +161,9 @@ def model_trunks(job: TrunkJob, post_model: "Callable[[], PostModel] | None" = N
         posts = take_posts(fit_posts(job))
     if cfg.trunks.source != "off":
         t0 = time.perf_counter()
-        trunks = build_trunk_landmarks(job.points, job.poses, job.views, job.intrinsics, cfg.trunks, cfg.ground,
-                                       np.random.default_rng(cfg.seed))
+        if grounds is None:
+            grounds = fit_grounds(job.geometry(), cfg)
+        trunks = fit_trunk_cylinders(job.points, job.views, job.intrinsics, cfg.trunks, grounds, cfg.seed)
         for t in trunks:
             if t.observations and all(o.detection.source == "geometry" for o in t.observations):
                 t.flags.append(FOUND_BY_GEOMETRY)

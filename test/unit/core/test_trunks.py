@@ -66,7 +66,7 @@ def _side(occluder=None, seed=0):
 
 def test_a_visible_trunk_gets_its_diameter_axis_and_ground():
     points, poses, views = _side()
-    lms = build_trunk_landmarks(points, poses, views, INTR, TrunkParams(), GroundParams(), np.random.default_rng(0))
+    lms = build_trunk_landmarks(points, poses, views, INTR, TrunkParams(), GroundParams(), 0)
     assert len(lms) == 1
     lm = lms[0]
     assert lm.flags == []
@@ -83,7 +83,7 @@ def test_a_trunk_hidden_at_the_diameter_height_is_flagged_not_invented():
     # Weeds 10 cm in front of the trunk, 0.22-0.45 m tall: seen from 0.35 m they hide the trunk from 0.21
     # to 0.46 m above the ground (the diameter band is 0.22-0.38 m) and leave the ground around in view.
     points, poses, views = _side(occluder=(1.15, 0.22, 0.45))
-    lms = build_trunk_landmarks(points, poses, views, INTR, TrunkParams(), GroundParams(), np.random.default_rng(0))
+    lms = build_trunk_landmarks(points, poses, views, INTR, TrunkParams(), GroundParams(), 0)
     assert len(lms) == 1  # the trunk is there (above and below the leaves)...
     assert "hidden_at_diameter_height" in lms[0].flags  # ...but not seen where its diameter is read
     assert lms[0].diameter_m is None and lms[0].band is None
@@ -94,12 +94,12 @@ def test_without_a_local_ground_the_diameter_height_comes_from_the_wider_ground(
     is reported, yet the diameter is read above the ground of the 1 m disk, and the trunk says so."""
     points, poses, views = _side()
     local = GroundParams(min_support_m2=1.0)
-    lms = build_trunk_landmarks(points, poses, views, INTR, TrunkParams(), local, np.random.default_rng(0))
+    lms = build_trunk_landmarks(points, poses, views, INTR, TrunkParams(), local, 0)
     assert len(lms) == 1 and lms[0].ground is None
     assert lms[0].flags == ["no_ground", "diameter_height_from_wide_ground"]
     assert lms[0].diameter_m == pytest.approx(2 * RADIUS, abs=0.001)
     off = GroundParams(min_support_m2=1.0, wide_radius_m=0.0)
-    lms = build_trunk_landmarks(points, poses, views, INTR, TrunkParams(), off, np.random.default_rng(0))
+    lms = build_trunk_landmarks(points, poses, views, INTR, TrunkParams(), off, 0)
     assert lms[0].flags == ["no_ground"] and lms[0].diameter_m is None
 
 
@@ -107,7 +107,7 @@ def test_no_detection_gives_no_trunk():
     points, poses, views = _side()
     empty = [TrunkView(v.keyframe, v.stamp, v.T_odom_cam, v.depth, []) for v in views]
     assert build_trunk_landmarks(points, poses, empty, INTR, TrunkParams(), GroundParams(),
-                                 np.random.default_rng(0)) == []
+                                 0) == []
 
 
 def test_the_merge_axis_comes_from_the_depth_pixels_not_a_leaning_fused_trunk():
@@ -120,7 +120,7 @@ def test_the_merge_axis_comes_from_the_depth_pixels_not_a_leaning_fused_trunk():
     leaning = points.copy()
     leaning[on_trunk, 2] -= np.tan(np.radians(0.6)) * h[on_trunk]  # the top comes towards the camera (-z)
     lm = build_trunk_landmarks(leaning, poses, views, INTR, TrunkParams(), GroundParams(),
-                               np.random.default_rng(0))[0]
+                               0)[0]
 
     def towards_camera_deg(a: np.ndarray) -> float:
         a = a if a @ UP > 0 else -a
@@ -141,7 +141,7 @@ def test_the_foot_lies_on_the_merge_axis_not_on_a_leaning_fused_trunk():
     leaning = points.copy()
     leaning[on_trunk, 2] += np.tan(np.radians(1.2)) * (h[on_trunk] - 0.35)  # the top away from the camera (+z)
     lm = build_trunk_landmarks(leaning, poses, views, INTR, TrunkParams(), GroundParams(),
-                               np.random.default_rng(0))[0]
+                               0)[0]
 
     def off_axis_mm(p: np.ndarray) -> float:  # horizontal distance from the true axis (x, z), mm
         return 1000 * float(np.hypot(p[0] - TRUNK[0], p[2] - TRUNK[2]))
