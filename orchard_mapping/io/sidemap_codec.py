@@ -1,4 +1,5 @@
-"""A side map (core.sidemap.SideMap, with its trunk landmarks, views and grounds) as bytes, and back.
+"""A side map (core.sidemap.SideMap, with its trunk landmarks, views and grounds) as bytes, and back; likewise a
+side's geometry before its trunks (core.sidemap.SideGeometry, what the local_ground_fitter node reads).
 
 The odometry node hands each finished side to the side merger as one `orchard_mapping_msgs/SideMap`
 message (a recorder keeps it in the bag, so a merge can be re-run from a recording). The bytes are an
@@ -23,18 +24,20 @@ from orchard_mapping.core.cylinder import Cylinder, CylinderFit, CylinderView
 from orchard_mapping.core.detection import Detection
 from orchard_mapping.core.ground import LocalGroundFit
 from orchard_mapping.core.posts import PostLandmark, PostObservation
-from orchard_mapping.core.sidemap import LoopClosure, Observations, SideMap
-from orchard_mapping.core.trunks import TrunkLandmark, TrunkObservation
+from orchard_mapping.core.sidemap import LoopClosure, Observations, SideGeometry, SideMap
+from orchard_mapping.core.trunks import TrunkLandmark, TrunkObservation, TrunkView
 from orchard_mapping.core.types import CameraIntrinsics, ImagePatch
 from orchard_mapping.errors import OrchardMappingError
 
-__all__ = ["SIDE_MAP_ENCODING", "SideMapFormatError", "decode_side_map", "encode_side_map"]
+__all__ = ["SIDE_GEOMETRY_ENCODING", "SIDE_MAP_ENCODING", "SideMapFormatError", "decode_side_geometry",
+           "decode_side_map", "encode_side_geometry", "encode_side_map"]
 
 SIDE_MAP_ENCODING = "orchard_mapping.side_map/1+npz"
+SIDE_GEOMETRY_ENCODING = "orchard_mapping.side_geometry/1+npz"
 
-_TYPES = {cls.__name__: cls for cls in (SideMap, CameraIntrinsics, Observations, LoopClosure, TrunkLandmark,
-                                        TrunkObservation, Detection, Cylinder, CylinderFit, CylinderView,
-                                        LocalGroundFit, ImagePatch, PostLandmark, PostObservation)}
+_TYPES = {cls.__name__: cls for cls in (SideMap, SideGeometry, CameraIntrinsics, Observations, LoopClosure,
+                                        TrunkLandmark, TrunkObservation, TrunkView, Detection, Cylinder, CylinderFit,
+                                        CylinderView, LocalGroundFit, ImagePatch, PostLandmark, PostObservation)}
 _TREE = "__tree__"
 
 
@@ -44,6 +47,25 @@ class SideMapFormatError(OrchardMappingError, ValueError):
 
 def encode_side_map(sm: SideMap) -> bytes:
     """The side map as the bytes of SIDE_MAP_ENCODING."""
+    return _encode(sm, "side_map")
+
+
+def encode_side_geometry(geometry: SideGeometry) -> bytes:
+    """The side's geometry as the bytes of SIDE_GEOMETRY_ENCODING."""
+    return _encode(geometry, "side_geometry")
+
+
+def decode_side_map(data: bytes, where: str = "side map") -> SideMap:
+    """The SideMap of `data` (encode_side_map's bytes); SideMapFormatError naming `where` and the field."""
+    return _decode(data, where, SideMap, SIDE_MAP_ENCODING)
+
+
+def decode_side_geometry(data: bytes, where: str = "side geometry") -> SideGeometry:
+    """The SideGeometry of `data` (encode_side_geometry's bytes); SideMapFormatError naming `where` and the field."""
+    return _decode(data, where, SideGeometry, SIDE_GEOMETRY_ENCODING)
+
+
+def _encode(obj: Any, root: str) -> bytes:
     arrays: dict[str, np.ndarray] = {}
 
     def enc(v: Any, where: str) -> Any:
@@ -67,22 +89,21 @@ def encode_side_map(sm: SideMap) -> bytes:
             return v
         raise SideMapFormatError(f"{where}: a {type(v).__name__} cannot be encoded")
 
-    tree = enc(sm, "side_map")
+    tree = enc(obj, root)
     buf = io.BytesIO()
     # allow_nan: NaN marks an unmeasured value (e.g. a ground's support offset); Python's json reads it back
     np.savez(buf, **{_TREE: np.frombuffer(json.dumps(tree, allow_nan=True).encode(), np.uint8)}, **arrays)
     return buf.getvalue()
 
 
-def decode_side_map(data: bytes, where: str = "side map") -> SideMap:
-    """The SideMap of `data` (encode_side_map's bytes); SideMapFormatError naming `where` and the field."""
+def _decode(data: bytes, where: str, want: type, encoding: str) -> Any:
     try:
         with np.load(io.BytesIO(bytes(data)), allow_pickle=False) as z:
             entries = {k: z[k] for k in z.files}
     except (OSError, ValueError, EOFError, zipfile.BadZipFile) as err:
-        raise SideMapFormatError(f"{where}: not a {SIDE_MAP_ENCODING} payload: {err}") from err
+        raise SideMapFormatError(f"{where}: not a {encoding} payload: {err}") from err
     if _TREE not in entries:
-        raise SideMapFormatError(f"{where}: no {_TREE} entry: not a {SIDE_MAP_ENCODING} payload")
+        raise SideMapFormatError(f"{where}: no {_TREE} entry: not a {encoding} payload")
     try:
         tree = json.loads(entries.pop(_TREE).tobytes().decode())
     except (UnicodeDecodeError, json.JSONDecodeError) as err:
@@ -110,7 +131,7 @@ def decode_side_map(data: bytes, where: str = "side map") -> SideMap:
             raise SideMapFormatError(f"{where}: {at} is a bare list")
         return v
 
-    sm = dec(tree, "side_map")
-    if not isinstance(sm, SideMap):
-        raise SideMapFormatError(f"{where}: the payload is a {type(sm).__name__}, not a SideMap")
-    return sm
+    out = dec(tree, "side_map" if want is SideMap else "side_geometry")
+    if not isinstance(out, want):
+        raise SideMapFormatError(f"{where}: the payload is a {type(out).__name__}, not a {want.__name__}")
+    return out

@@ -1,4 +1,5 @@
-"""Trunk landmarks and local grounds <-> orchard_mapping_msgs (TrunkCylinder(Array), LocalGround(Array)).
+"""Trunk landmarks and local grounds <-> orchard_mapping_msgs (TrunkCylinder(Array), LocalGround(Array)); the
+local_ground_fitter's answer (core.trunks.TrunkGround per landmark) <-> LocalGroundArray, exactly (float64).
 
 `tree_id` carries the per-side trunk id until the side merge assigns tree ids (the ground of a trunk
 has the same id, which pairs them). Lengths in metres, in the frame of the array's header.
@@ -8,16 +9,25 @@ are known, its radius is not.
 
 from __future__ import annotations
 
+import array
 import math
 from dataclasses import dataclass
 
 import numpy as np
 
-from orchard_mapping.core.trunks import TrunkLandmark
+from orchard_mapping.core.cylinder import Cylinder
+from orchard_mapping.core.ground import LocalGroundFit
+from orchard_mapping.core.trunks import TrunkGround, TrunkLandmark
+from orchard_mapping.errors import OrchardMappingError
 from orchard_mapping.io.results import ResultTree
 
-__all__ = ["GroundRecord", "TrunkRecord", "ground_records", "grounds_from_msg", "grounds_to_msg", "stamp_header",
-           "trees_from_msg", "trees_to_msg", "trunks_from_msg", "trunks_to_msg"]
+__all__ = ["GroundMessageError", "GroundRecord", "TrunkRecord", "ground_records", "grounds_from_msg", "grounds_to_msg",
+           "stamp_header", "trees_from_msg", "trees_to_msg", "trunk_grounds_from_msg", "trunk_grounds_to_msg",
+           "trunks_from_msg", "trunks_to_msg"]
+
+
+class GroundMessageError(OrchardMappingError, ValueError):
+    """A LocalGroundArray that is not a ground fitter's answer (names the ground and what is wrong)."""
 
 
 @dataclass(frozen=True)
@@ -95,6 +105,7 @@ def _fill_ground(m, r: GroundRecord) -> None:
     m.point.x, m.point.y, m.point.z = r.point
     m.normal.x, m.normal.y, m.normal.z = r.normal
     m.offset, m.fit_rmse, m.inlier_count = r.offset, r.fit_rmse, int(r.inlier_count)
+    m.kind = "local"
 
 
 def trunks_to_msg(records: list[TrunkRecord], frame_id: str, stamp: float):
@@ -130,6 +141,72 @@ def ground_records(landmarks: list[TrunkLandmark], side: str) -> list[GroundReco
     """The local grounds of a side's trunk landmarks (trunks without a ground have none)."""
     return [GroundRecord(lm.id, side, _t3(lm.ground.point), _t3(lm.ground.normal), float(lm.ground.offset),
                          float(lm.ground.rmse_m), int(lm.ground.inliers)) for lm in landmarks if lm.ground is not None]
+
+
+GROUND_KINDS = ("local", "wide", "none")  # LocalGround.kind in a ground fitter's answer
+
+
+def trunk_grounds_to_msg(grounds: list[TrunkGround], side: str, frame_id: str, stamp: float):
+    """LocalGroundArray with one LocalGround per trunk landmark (the ground fitter's answer): its plane (the
+    local ground, else the wide one, else none) and what the trunk's cylinder fit reads. float64 fields only:
+    trunk_grounds_from_msg gives the same values back, bit for bit."""
+    from orchard_mapping_msgs.msg import LocalGround, LocalGroundArray
+
+    out = LocalGroundArray()
+    stamp_header(out.header, stamp, frame_id)
+    for g in grounds:
+        m = LocalGround()
+        m.header = out.header
+        m.tree_id, m.side = int(g.id), side
+        plane = g.ground if g.ground is not None else g.wide_ground
+        m.kind = "local" if g.ground is not None else "wide" if g.wide_ground is not None else "none"
+        if plane is not None:
+            m.point.x, m.point.y, m.point.z = _t3(plane.point)
+            m.normal.x, m.normal.y, m.normal.z = _t3(plane.normal)
+            m.offset, m.fit_rmse = float(plane.offset), float(plane.rmse_m)
+            m.inlier_count, m.candidate_count = int(plane.inliers), int(plane.candidates)
+            m.support_area, m.support_offset = float(plane.support_m2), float(plane.support_offset_m)
+            if plane.ground_cells is not None:
+                m.ground_cells = array.array("d", np.asarray(plane.ground_cells, np.float64).tobytes())
+        else:
+            m.offset = m.fit_rmse = m.support_area = m.support_offset = math.nan
+        c = g.coarse
+        m.axis_point.x, m.axis_point.y, m.axis_point.z = _t3(c.origin)
+        m.axis.x, m.axis.y, m.axis.z = _t3(c.axis)
+        m.axis_radius, m.trunk_bottom, m.trunk_top = float(c.radius), float(g.bottom_m), float(g.top_m)
+        m.view_indices = [int(v) for v, _ in g.detections]
+        m.detection_indices = [int(d) for _, d in g.detections]
+        m.point_indices = array.array("I", np.asarray(g.point_indices, np.uint32).tobytes())  # whole, not per item
+        out.grounds.append(m)
+    return out
+
+
+def trunk_grounds_from_msg(msg) -> tuple[str, float, list[TrunkGround]]:
+    """(frame id, stamp s, the trunk landmarks' grounds) of a ground fitter's LocalGroundArray
+    (trunk_grounds_to_msg); GroundMessageError for one that is not."""
+    out = []
+    for m in msg.grounds:
+        where = f"local ground of trunk {m.tree_id} ({m.side})"
+        if m.kind not in GROUND_KINDS:
+            raise GroundMessageError(f"{where}: kind {m.kind!r} is not one of {GROUND_KINDS}: not a ground "
+                                     "fitter's answer")
+        if len(m.view_indices) != len(m.detection_indices) or len(m.ground_cells) % 3:
+            raise GroundMessageError(f"{where}: {len(m.view_indices)} view indices for {len(m.detection_indices)} "
+                                     f"detections, {len(m.ground_cells)} ground cell values (x y z each)")
+        plane = None
+        if m.kind != "none":
+            plane = LocalGroundFit(normal=np.array([m.normal.x, m.normal.y, m.normal.z]), offset=float(m.offset),
+                                   point=np.array([m.point.x, m.point.y, m.point.z]), inliers=int(m.inlier_count),
+                                   rmse_m=float(m.fit_rmse), candidates=int(m.candidate_count),
+                                   support_m2=float(m.support_area), support_offset_m=float(m.support_offset),
+                                   ground_cells=np.asarray(m.ground_cells, np.float64).reshape(-1, 3))
+        coarse = Cylinder(np.array([m.axis.x, m.axis.y, m.axis.z]),
+                          np.array([m.axis_point.x, m.axis_point.y, m.axis_point.z]), float(m.axis_radius))
+        out.append(TrunkGround(int(m.tree_id), tuple(zip((int(v) for v in m.view_indices),
+                                                         (int(d) for d in m.detection_indices), strict=True)),
+                               np.asarray(m.point_indices, np.int64), coarse, float(m.trunk_bottom), float(m.trunk_top),
+                               plane if m.kind == "local" else None, plane if m.kind == "wide" else None))
+    return msg.header.frame_id, msg.header.stamp.sec + 1e-9 * msg.header.stamp.nanosec, out
 
 
 def _nan(v: float | None) -> float:

@@ -88,3 +88,41 @@ def test_trees_round_trip_through_tree_traits_array():
     assert crown.scale.x * crown.scale.y * crown.scale.z == pytest.approx(1.5)
     assert markers[-2].text == "tree 2: 70 mm, 2.40 m, 1.50 m3"
     assert markers[3].color.g < markers[1].color.g  # seen from one side: orange, from both: green
+
+
+def test_a_ground_fitters_answer_round_trips_exactly():
+    """TrunkGround per landmark -> LocalGroundArray -> bytes -> TrunkGround: the same values to the bit, for a local
+    ground, a wide one (no local ground) and none; the plane's fields are the ground's."""
+    from orchard_mapping.core.cylinder import Cylinder
+    from orchard_mapping.core.trunks import TrunkGround
+    from orchard_mapping.ros.messages import trunk_grounds_from_msg, trunk_grounds_to_msg
+
+    rng = np.random.default_rng(3)
+    up = np.array([0.02, -0.999, 0.01]) / np.linalg.norm([0.02, -0.999, 0.01])
+
+    def plane(i: int) -> LocalGroundFit:
+        return LocalGroundFit(-up, 0.61 + i / 3, rng.normal(size=3), 800 + i, 0.004 / 3, 1500 + i, 0.3 / 7,
+                              float("nan") if i else 0.123456789, rng.normal(size=(9 + i, 3)))
+
+    grounds = [TrunkGround(i, ((0, 0), (4, 1), (7, 0))[: i + 1], rng.integers(0, 10**6, 50 + i),
+                           Cylinder(up + 1e-9 * i, rng.normal(size=3), 0.0342 + 1e-12), -0.1 / 3, 0.6 + i / 7,
+                           plane(i) if i == 0 else None, plane(i) if i == 1 else None) for i in range(3)]
+    msg = deserialize_message(serialize_message(trunk_grounds_to_msg(grounds, "back", "odom_back", 5.5)),
+                              LocalGroundArray)
+    assert [m.kind for m in msg.grounds] == ["local", "wide", "none"]
+    frame, stamp, got = trunk_grounds_from_msg(msg)
+    assert (frame, stamp) == ("odom_back", 5.5) and len(got) == 3
+    for g, w in zip(got, grounds, strict=True):
+        assert (g.id, g.detections, g.bottom_m, g.top_m, g.coarse.radius) == (w.id, w.detections, w.bottom_m, w.top_m,
+                                                                            w.coarse.radius)
+        for a, b in ((g.point_indices, w.point_indices), (g.coarse.axis, w.coarse.axis),
+                     (g.coarse.origin, w.coarse.origin)):
+            np.testing.assert_array_equal(a, b)
+        for a, b in ((g.ground, w.ground), (g.wide_ground, w.wide_ground)):
+            assert (a is None) == (b is None)
+            if a is not None:
+                np.testing.assert_equal(
+                    (a.offset, a.inliers, a.rmse_m, a.candidates, a.support_m2, a.support_offset_m),
+                    (b.offset, b.inliers, b.rmse_m, b.candidates, b.support_m2, b.support_offset_m))  # NaN == NaN
+                for x, y in ((a.normal, b.normal), (a.point, b.point), (a.ground_cells, b.ground_cells)):
+                    np.testing.assert_array_equal(x, y)

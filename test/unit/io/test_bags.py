@@ -308,6 +308,20 @@ def _our_messages() -> dict[str, Any]:
         offset=-0.01,
         fit_rmse=0.02,
         inlier_count=4000,
+        # what a ground fitter's answer adds (arrays: numpy, as rosbags reads them)
+        kind="local",
+        candidate_count=5200,
+        support_area=0.42,
+        support_offset=float("nan"),
+        ground_cells=np.array([1.0, -2.0, 0.0, 1.04, -2.0, 0.001], np.float64),
+        axis_point=point(x=1.0, y=-2.0, z=0.3),
+        axis=vec(x=0.0, y=0.0, z=1.0),
+        axis_radius=0.061,
+        trunk_bottom=0.02,
+        trunk_top=0.9,
+        view_indices=np.array([0, 3], np.uint32),
+        detection_indices=np.array([1, 0], np.uint32),
+        point_indices=np.array([5, 17, 4000000000], np.uint32),
     )
     traits = t["orchard_mapping_msgs/msg/TreeTraits"](
         header=msg_header(12.5, "map"),
