@@ -34,6 +34,7 @@ setup(
             # with python -m)
             "rgbd_odometry = orchard_mapping.ros.rgbd_odometry:main",
             "trunk_detector = orchard_mapping.ros.trunk_detector:main",
+            "local_ground_fitter = orchard_mapping.ros.local_ground_fitter:main",
             "bag_player = orchard_mapping.ros.player:main",
             "recorder = orchard_mapping.ros.recorder:main",
             "side_merger = orchard_mapping.ros.side_merger:main",

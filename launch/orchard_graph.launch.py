@@ -1,6 +1,7 @@
 """`ros2 launch orchard_mapping orchard_graph.launch.py [bags:=front,back] [rate:=1.0] [params:=FILE] [out:=DIR]`
 on a full ROS 2 Jazzy install (colcon build; see the README). The same graph as `orchard-map launch`: the
-trunk detector, the odometry node (asking the detector node), the side merger, the trait reporter and, with
+trunk detector, the local ground fitter, the odometry node (asking the detector node and fitting its trunk
+cylinders against the ground fitter's grounds), the side merger, the trait reporter and, with
 `bags`, the bag player. Not runnable from the project's venv (no `launch` on PyPI): there, use
 `orchard-map launch`."""
 
@@ -18,7 +19,7 @@ def _nodes(context):
     params = LaunchConfiguration("params").perform(context) or str(share / "config" / "ros_params.yaml")
     bags = [b for b in LaunchConfiguration("bags").perform(context).split(",") if b]
     rate = LaunchConfiguration("rate").perform(context)
-    odometry = [params, {"detector": "node", "exit_after_sides": len(bags)}]
+    odometry = [params, {"detector": "node", "ground_fitter": "node", "exit_after_sides": len(bags)}]
     out = LaunchConfiguration("out").perform(context)
     merged = [params, {"out_dir": out}]
     nodes = [
@@ -28,6 +29,8 @@ def _nodes(context):
              respawn=not bags, output="screen"),
         LifecycleNode(package="orchard_mapping", executable="trunk_detector", name="trunk_detector", namespace="",
                       parameters=[params], respawn=True, output="screen"),
+        Node(package="orchard_mapping", executable="local_ground_fitter", name="local_ground_fitter",
+             parameters=[params], respawn=True, output="screen"),
         Node(package="orchard_mapping", executable="rgbd_odometry", name="rgbd_odometry", parameters=odometry,
              output="screen"),
     ]

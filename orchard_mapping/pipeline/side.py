@@ -15,8 +15,9 @@ import numpy as np
 from orchard_mapping.config import OrchardConfig
 from orchard_mapping.core.bundle_adjustment import BAResult, bundle_adjust_windowed, optimise_pose_graph
 from orchard_mapping.core.odometry import RGBDFrontEnd
-from orchard_mapping.core.sidemap import FrontEndResult, LoopClosure, SideMap
+from orchard_mapping.core.sidemap import FrontEndResult, LoopClosure, SideGeometry, SideMap
 from orchard_mapping.core.sides import SideSplitter
+from orchard_mapping.core.trunks import TrunkGround
 from orchard_mapping.core.types import CameraIntrinsics, RGBDFrame
 from orchard_mapping.errors import BagFormatError
 from orchard_mapping.io.bags import RGBDSequence
@@ -203,10 +204,23 @@ def finish_side_geometry(job: SideHandover, timings: Timings) -> tuple[SideMap, 
     return side_map, trunk_job
 
 
-def finish_side(job: SideHandover, timings: Timings) -> SideMap:
+# The grounds of a side's trunk landmarks fitted elsewhere (the live graph's local_ground_fitter node) from the
+# side's geometry: core.trunks.TrunkGround per landmark, or None to fit them here
+GroundsElsewhere = Callable[[SideGeometry], "list[TrunkGround] | None"]
+
+
+def finish_side(job: SideHandover, timings: Timings, grounds_elsewhere: GroundsElsewhere | None = None) -> SideMap:
     """Loop detection, pose graph, bundle adjustment, TSDF fusion (cleaning the keyframes with a trunk
-    detection, with trunks.view_depth "cleaned"), trunk cylinders and local grounds: the side map."""
-    return finish_side_later(job, timings, None)()
+    detection, with trunks.view_depth "cleaned"), trunk cylinders and local grounds: the side map.
+    grounds_elsewhere: asked for the trunks' grounds once the side is fused; the trunk cylinders are then
+    fitted against its answer (the same `model_trunks`, whose first step it stands for)."""
+    if grounds_elsewhere is None:
+        return finish_side_later(job, timings, None)()
+    side_map, trunk_job = finish_side_geometry(job, timings)
+    if trunk_job is None:
+        return side_map
+    grounds = grounds_elsewhere(trunk_job.geometry()) if job.cfg.trunks.source != "off" else None
+    return with_trunks(side_map, model_trunks(trunk_job, grounds=grounds), timings)
 
 
 PendingSide = Callable[[], SideMap]

@@ -12,6 +12,12 @@ handover (pipeline.SideHandover: the front end's result, the spooled keyframe im
 configuration, and the trunk detections made beside the front end in the node's process: by the
 trunk_detector node or the configured detector, pipeline.EarlyDetections). The side map comes back whole
 (pickled between the node's own processes).
+
+With `grounds` given (the graph's local_ground_fitter node fits the trunks' grounds), the child stops once the
+side is fused and sends the side's geometry (core.sidemap.SideGeometry, encoded as the message carries it);
+`grounds` publishes it and waits for the node's answer, which goes back to the child, and the child fits the
+trunk cylinders against it (pipeline.finish_side's `grounds_elsewhere`). An answer of None: the child fits
+the grounds itself (the same fit: the same grounds).
 """
 
 from __future__ import annotations
@@ -19,12 +25,21 @@ from __future__ import annotations
 import multiprocessing as mp
 import os
 import traceback
+from collections.abc import Callable
 
-from orchard_mapping.core.sidemap import SideMap
+from orchard_mapping.core.sidemap import SideGeometry, SideMap
+from orchard_mapping.core.trunks import TrunkGround
 from orchard_mapping.errors import OrchardMappingError
+from orchard_mapping.io.sidemap_codec import encode_side_geometry
 from orchard_mapping.pipeline import SideSession, Timings, finish_side
 
-__all__ = ["CHILD_NICE", "SideFinishError", "finish_in_child"]
+__all__ = ["CHILD_NICE", "GeometryInfo", "SideFinishError", "finish_in_child"]
+
+# What the parent is told of a side's geometry beside its encoded bytes: side, frame_id, stamp (s),
+# keyframes, cloud_points
+GeometryInfo = dict
+# (the geometry's info, its bytes) -> the trunks' grounds fitted elsewhere, or None to fit them in the child
+AskGrounds = Callable[[GeometryInfo, bytes], "list[TrunkGround] | None"]
 
 CHILD_NICE = 5  # niceness added to the child: the camera's frames are tracked first
 
@@ -38,14 +53,24 @@ class SideFinishError(OrchardMappingError):
         self.typed = typed  # the child raised an OrchardMappingError (bad input), not a bug
 
 
-def _child(job, conn) -> None:
+def _child(job, conn, ask_grounds: bool) -> None:
     try:
         os.nice(CHILD_NICE)
     except OSError:
         pass
+
+    def grounds_from_parent(geometry: SideGeometry) -> "list[TrunkGround] | None":
+        info = {"side": geometry.side, "frame_id": geometry.frame_id, "stamp": geometry.stamp,
+                "keyframes": len(geometry.keyframe_poses), "cloud_points": len(geometry.cloud_points)}
+        conn.send(("geometry", (info, encode_side_geometry(geometry))))
+        kind, grounds = conn.recv()
+        if kind != "grounds":
+            raise SideFinishError(f"{geometry.side} side: the node answered {kind!r} to the side's geometry")
+        return grounds
+
     try:
         timings = Timings()
-        sm = finish_side(job, timings)
+        sm = finish_side(job, timings, grounds_from_parent if ask_grounds else None)
         conn.send(("done", (sm, dict(timings.stages))))
     except OrchardMappingError as err:
         conn.send(("error", (str(err), traceback.format_exc(), True)))
@@ -55,12 +80,13 @@ def _child(job, conn) -> None:
         conn.close()
 
 
-def finish_in_child(session: SideSession, timings: Timings) -> SideMap:
+def finish_in_child(session: SideSession, timings: Timings, grounds: AskGrounds | None = None) -> SideMap:
     """session.finish(timings) run in a child process. Lets go of the keyframe images. SideFinishError when
-    the child failed or died."""
+    the child failed or died. grounds: asked for the trunks' grounds once the side is fused (the module
+    docstring); None: the child fits them."""
     ctx = mp.get_context("spawn")
     parent, child = ctx.Pipe()
-    proc = ctx.Process(target=_child, args=(session.handover(), child),
+    proc = ctx.Process(target=_child, args=(session.handover(), child, grounds is not None),
                        name=f"finish-{session.side}", daemon=True)
     try:
         proc.start()
@@ -72,7 +98,9 @@ def finish_in_child(session: SideSession, timings: Timings) -> SideMap:
                 proc.join(timeout=10)
                 raise SideFinishError(f"{session.side} side: the process finishing it died "
                                       f"(exit code {proc.exitcode})", typed=False) from None
-            if kind == "done":
+            if kind == "geometry" and grounds is not None:
+                parent.send(("grounds", grounds(*payload)))
+            elif kind == "done":
                 sm, stages = payload
                 for stage, seconds in stages.items():
                     timings.add(stage, seconds)

@@ -1,8 +1,9 @@
 """The node graph `orchard-map launch` starts (see supervisor.py for how it is started and watched).
 
 Nodes: `rgbd_odometry` (the camera topics in; each side's odometry, keyframes, fused cloud, trunk
-cylinders, local grounds and whole side map out), `trunk_detector` (answers the odometry node's detection
-requests), `side_merger` (both side maps in; the merge, the merged cloud, trunks, grounds and trees out),
+cylinders and whole side map out), `trunk_detector` (answers the odometry node's detection
+requests), `local_ground_fitter` (each fused side's trunk landmarks, coarse axes and local grounds, which the
+odometry node fits the trunk cylinders against), `side_merger` (both side maps in; the merge, the merged cloud, trunks, grounds and trees out),
 `trait_reporter` (the trees as TreeTraitsArray, RViz markers and trees.json / trees.csv), `player`
 (replaying bags instead of a live camera) and `recorder` (the graph's outputs to an MCAP bag). Every node reads the same parameters file (config/ros_params.yaml by
 default: the keys of config/default.yaml).
@@ -44,7 +45,7 @@ def graph_specs(bags: list[Path], *, rate: float = 1.0, start_s: float = 0.0, lo
     (input.side_source), and both are merged."""
     ros_args = ("--ros-args", "--params-file", str(params or config_dir() / "ros_params.yaml"))
     out_arg = ("-p", f"out_dir:={Path(out).resolve()}") if out is not None else ()
-    odometry = [*ros_args, "-p", "detector:=node"]
+    odometry = [*ros_args, "-p", "detector:=node", "-p", "ground_fitter:=node"]
     if side:
         odometry += ["-p", f"side:={side}"]
     specs = []
@@ -53,6 +54,9 @@ def graph_specs(bags: list[Path], *, rate: float = 1.0, start_s: float = 0.0, lo
                                                        "--prefix", "/tf_static")))
     # a dead detector is started again also on bags: the odometry node flags what it could not see meanwhile
     specs.append(NodeSpec("trunk_detector", "trunk_detector", ros_args, restart=restart))
+    # likewise the ground fitter: restarted, it gets the latched side geometry again and answers it (meanwhile,
+    # or if it never does, the odometry node fits the same grounds itself after ground_fitter_timeout_s)
+    specs.append(NodeSpec("local_ground_fitter", "local_ground_fitter", ros_args, restart=restart))
     if bags:
         if drive and len(bags) != 1:
             raise GraphError(f"--drive replays one bag holding both sides, got {len(bags)} bags")
@@ -73,7 +77,8 @@ def graph_specs(bags: list[Path], *, rate: float = 1.0, start_s: float = 0.0, lo
         # detector not there within 15 s (the flagged trees seen on a loaded machine came from late answers,
         # detector_timeout_s, not from this; the wait only keeps a slow start from costing the first keyframes)
         player = [str(b) for b in bags] + ["--rate", str(rate), "--start", str(start_s),
-                                           "--wait-reader", "rgbd_odometry", "--wait-node", "trunk_detector"]
+                                           "--wait-reader", "rgbd_odometry", "--wait-node", "trunk_detector",
+                                           "--wait-node", "local_ground_fitter"]
         if two:  # the side merger and the trait reporter have started (imported the core) before the first frame
             player += ["--wait-node", "side_merger", "--wait-node", "trait_reporter"]
         player += [a for s in (sides or []) for a in ("--side", s)]

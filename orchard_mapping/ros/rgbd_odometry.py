@@ -5,7 +5,10 @@ each keyframe's images spooled to disk and, every trunks.detect_every_m, handed 
 thread of its own; when the side ends (the side topic changes or says `end`) loop
 detection, bundle adjustment, TSDF fusion, trunk cylinders and local grounds run in
 a child process (ros/finisher.py: in a thread they held the GIL for seconds and camera frames were lost)
-while the next side is already being tracked.
+while the next side is already being tracked. With `ground_fitter:=node` (what `orchard-map launch` sets)
+the trunks' local grounds come from the `local_ground_fitter` node: once the side is fused its geometry
+goes out on `side_geometry`, and the trunk cylinders are fitted against the grounds that come back on
+`local_grounds` (core.trunks: the grounds, then the cylinders; `orchard-map run` does both in one process).
 
 In:  colour and aligned depth (sensor_msgs/Image, sensor-data QoS), CameraInfo, the side topic
      (std_msgs/String "front" / "back" / "end"; without one the `side` parameter names the side, and
@@ -17,7 +20,10 @@ Out, per side (`/orchard/<side>/...`):
      keyframes  the optimised keyframe poses, nav_msgs/Path, when the side ends (latched)
      cloud      the fused cloud, sensor_msgs/PointCloud2 x y z rgb, odom_<side> (latched)
      trunk_cylinders  orchard_mapping_msgs/TrunkCylinderArray (latched)
-     local_grounds    orchard_mapping_msgs/LocalGroundArray (latched)
+     local_grounds    orchard_mapping_msgs/LocalGroundArray (latched; with ground_fitter:=node the
+                      local_ground_fitter publishes it, and this node reads it)
+     side_geometry    orchard_mapping_msgs/SideMap, a core.sidemap.SideGeometry payload: keyframe poses, fused
+                      cloud, the detector's keyframes (latched; only with ground_fitter:=node)
      side_map   orchard_mapping_msgs/SideMap: the whole side map for the side merger (latched)
      status     std_msgs/String JSON: frames received, paired, processed, dropped (latched)
 and on /tf the camera frame in odom_<side>, every frame placed (the same pose as `odometry`).
@@ -52,11 +58,19 @@ from orchard_mapping.core.sides import SIDE_END, SideSplitter
 from orchard_mapping.errors import OrchardMappingError
 from orchard_mapping.io.bags import camera_intrinsics, decode_frame, header_ns
 from orchard_mapping.io.pairing import Marker, Paired, RGBDPairer
-from orchard_mapping.io.sidemap_codec import SIDE_MAP_ENCODING, encode_side_map
+from orchard_mapping.io.sidemap_codec import SIDE_GEOMETRY_ENCODING, SIDE_MAP_ENCODING, encode_side_map
 from orchard_mapping.pipeline import SIDES, SideSession, SpooledKeyframeImages, Timings
 from orchard_mapping.ros.clouds import cloud_to_msg
-from orchard_mapping.ros.finisher import SideFinishError, finish_in_child
-from orchard_mapping.ros.messages import TrunkRecord, ground_records, grounds_to_msg, stamp_header, trunks_to_msg
+from orchard_mapping.ros.finisher import GeometryInfo, SideFinishError, finish_in_child
+from orchard_mapping.ros.local_ground_fitter import geometry_topic, grounds_topic
+from orchard_mapping.ros.messages import (
+    TrunkRecord,
+    ground_records,
+    grounds_to_msg,
+    stamp_header,
+    trunk_grounds_from_msg,
+    trunks_to_msg,
+)
 from orchard_mapping.ros.params import ConfigParameters
 from orchard_mapping.ros.player import STATUS_TOPIC as PLAYER_STATUS
 from orchard_mapping.ros.qos import CAMERA, CAMERA_REPLAYED, LATCHED
@@ -91,6 +105,8 @@ class _Counts:
     lost_vs_player: int = 0
     side_map_latency_s: dict[str, float] = field(default_factory=dict)  # s, a side's end -> its map published
     failed: list[str] = field(default_factory=list)  # sides whose map could not be made
+    # sides whose trunks' grounds were fitted here, the local_ground_fitter node not answering (the same grounds)
+    grounds_here: list[str] = field(default_factory=list)
 
 
 class RGBDOdometryNode(Node):
@@ -110,6 +126,11 @@ class RGBDOdometryNode(Node):
         # however loaded the machine: with 5 s, 1 request of the 2-tree drive went unanswered in 2 of 5 test runs
         # with a simulation or a detector training on the same 2 cores (`orchard-map launch --bag` sets 60)
         self.declare_parameter("detector_timeout_s", 5.0)
+        # "node": the local_ground_fitter node fits the trunks' local grounds (the graph); "local": this node does
+        self.declare_parameter("ground_fitter", "local")
+        # s to wait for the local_ground_fitter's answer before this node fits the grounds itself. Not a result's
+        # cut-off: the same fit gives the same grounds here, only later. A 10-tree side takes it a few seconds.
+        self.declare_parameter("ground_fitter_timeout_s", 120.0)
         self._detectors: dict[str, RemoteDetector] = {}
         cfg = self.params.config
         topics = cfg.input.topics
@@ -128,6 +149,17 @@ class RGBDOdometryNode(Node):
         self.errors: list[str] = []
         self._status = self.create_publisher(String, "/orchard/odometry/status", LATCHED)
         self._tf = Transforms(self)
+        # the local_ground_fitter's latest answer per side, and a condition the finishing thread waits on for it
+        self._grounds: dict[str, object] = {}
+        self._grounds_cv = threading.Condition()
+        self._ground_node = self.get_parameter("ground_fitter").value == "node"
+        if self.get_parameter("ground_fitter").value not in ("node", "local"):
+            raise OrchardMappingError(f"parameter ground_fitter must be 'node' or 'local', got "
+                                      f"{self.get_parameter('ground_fitter').value!r}")
+        if self._ground_node:
+            for side in SIDES:
+                self.create_subscription(LocalGroundArray, grounds_topic(side),
+                                         lambda msg, side=side: self._on_grounds(side, msg), LATCHED)
         camera = CAMERA_REPLAYED if self.get_parameter("replayed_camera").value else CAMERA
         self.create_subscription(Image, topics.color, self._on_colour, camera)
         self.create_subscription(Image, topics.depth, self._on_depth, camera)
@@ -156,9 +188,13 @@ class RGBDOdometryNode(Node):
                 "keyframes": self.create_publisher(PathMsg, f"{base}/keyframes", LATCHED),
                 "cloud": self.create_publisher(PointCloud2, f"{base}/cloud", LATCHED),
                 "trunks": self.create_publisher(TrunkCylinderArray, f"{base}/trunk_cylinders", LATCHED),
-                "grounds": self.create_publisher(LocalGroundArray, f"{base}/local_grounds", LATCHED),
                 "side_map": self.create_publisher(SideMapMsg, f"{base}/side_map", LATCHED),
             }
+            # one publisher per topic in the graph: with the ground fitter node, the grounds are its own
+            if self._ground_node:
+                self._pubs[side]["geometry"] = self.create_publisher(SideMapMsg, geometry_topic(side), LATCHED)
+            else:
+                self._pubs[side]["grounds"] = self.create_publisher(LocalGroundArray, grounds_topic(side), LATCHED)
         return self._pubs[side]
 
     def _publish_status(self) -> None:
@@ -170,7 +206,7 @@ class RGBDOdometryNode(Node):
         msg.data = json.dumps({"colour": c.colour, "depth": c.depth, "paired": c.paired, "unpaired": c.unpaired,
                                "missed": c.missed, "lost_vs_player": c.lost_vs_player,
                                "processed": dict(c.processed), "finished": list(c.finished),
-                               "failed": list(c.failed),
+                               "failed": list(c.failed), "grounds_here": list(c.grounds_here),
                                "side_map_latency_s": dict(c.side_map_latency_s), "errors": list(self.errors),
                                "detector_unanswered": {s: d.unanswered for s, d in detectors}})
         self._status.publish(msg)
@@ -355,7 +391,7 @@ class RGBDOdometryNode(Node):
             self.get_logger().info(f"{side} side ended after {session.frames} frames: bundle adjustment, fusion, "
                                    "trunks")
             try:
-                sm = finish_in_child(session, Timings())
+                sm = finish_in_child(session, Timings(), self._ask_ground_fitter if self._ground_node else None)
             except Exception as err:  # noqa: BLE001 - reported and counted; the node goes on with the next side
                 self._error(f"{side} side: no side map: {err}" if isinstance(err, OrchardMappingError)
                             else f"{side} side: no side map: {type(err).__name__}: {err}")
@@ -374,6 +410,47 @@ class RGBDOdometryNode(Node):
             self.get_logger().info(f"{side} side map published: {len(sm.keyframe_poses)} keyframes, "
                                    f"{len(sm.cloud_points)} points, {len(sm.trunks)} trunks")
             self._check_wanted()
+
+    # -- the trunks' grounds from the local_ground_fitter node
+
+    def _on_grounds(self, side: str, msg: LocalGroundArray) -> None:
+        with self._grounds_cv:
+            self._grounds[side] = msg
+            self._grounds_cv.notify_all()
+
+    def _ask_ground_fitter(self, info: GeometryInfo, data: bytes):
+        """Publish a side's geometry and wait for the local_ground_fitter's grounds of it (core.trunks.TrunkGround
+        per landmark); None, to fit them in the side's finishing process, when none came within
+        ground_fitter_timeout_s or the answer was unreadable. Called from the finishing thread."""
+        side = info["side"]
+        msg = SideMapMsg()
+        stamp_header(msg.header, float(info["stamp"]), info["frame_id"])
+        msg.side, msg.encoding = side, SIDE_GEOMETRY_ENCODING
+        msg.keyframes, msg.trunks, msg.cloud_points = int(info["keyframes"]), 0, int(info["cloud_points"])
+        msg.data = array.array("B", data)
+        want = (msg.header.stamp.sec, msg.header.stamp.nanosec)
+
+        def answered() -> bool:
+            m = self._grounds.get(side)
+            return m is not None and (m.header.stamp.sec, m.header.stamp.nanosec) == want
+
+        with self._grounds_cv:
+            self._grounds.pop(side, None)  # an earlier answer (a replay looping round) is not this one's
+        self._side_pubs(side)["geometry"].publish(msg)
+        timeout = float(self.get_parameter("ground_fitter_timeout_s").value)
+        with self._grounds_cv:
+            got = self._grounds_cv.wait_for(answered, timeout=timeout)
+            answer = self._grounds.get(side) if got else None
+        try:
+            if answer is not None:
+                return trunk_grounds_from_msg(answer)[2]
+            why = f"no answer within {timeout:g} s"
+        except OrchardMappingError as err:
+            why = str(err)
+        self.get_logger().warning(f"{side} side: local grounds from the local_ground_fitter: {why}; they are "
+                                  "fitted here (the same fit)")
+        self.counts.grounds_here.append(side)
+        return None
 
     def _check_wanted(self) -> None:
         """Replaying bags: stop once every side expected has its map or has failed (exit code 1 if one failed)."""
@@ -395,7 +472,8 @@ class RGBDOdometryNode(Node):
         pubs["cloud"].publish(cloud_to_msg(sm.cloud_points, sm.cloud_colors, sm.frame_id, stamp))
         pubs["trunks"].publish(trunks_to_msg([TrunkRecord.from_landmark(lm, sm.side) for lm in sm.trunks],
                                              sm.frame_id, stamp))
-        pubs["grounds"].publish(grounds_to_msg(ground_records(sm.trunks, sm.side), sm.frame_id, stamp))
+        if "grounds" in pubs:  # else the ground fitter node published the side's grounds
+            pubs["grounds"].publish(grounds_to_msg(ground_records(sm.trunks, sm.side), sm.frame_id, stamp))
         msg = SideMapMsg()
         stamp_header(msg.header, stamp, sm.frame_id)
         msg.side, msg.encoding = sm.side, SIDE_MAP_ENCODING

@@ -122,7 +122,7 @@ def test_supervisor_stops_the_graph_with_exit_1_when_a_node_dies_for_good(tmp_pa
 @pytest.mark.parametrize("bags, drive", [(["front", "back"], False), (["front"], False), (["drive"], True)])
 def test_a_replay_waits_for_every_node_asked_during_the_first_frames_and_for_the_detector(bags, drive):
     """The first frame is sent only once the odometry node reads the camera and the nodes it asks (the trunk
-    detector) or feeds at once are up: a node still importing the core when the frames begin would leave the
+    detector, the ground fitter) or feeds at once are up: a node still importing the core when the frames begin would leave the
     first keyframes without detections, and their trunks flagged, on a loaded machine."""
     from orchard_mapping.ros.graph import graph_specs
 
@@ -132,8 +132,11 @@ def test_a_replay_waits_for_every_node_asked_during_the_first_frames_and_for_the
     readers = {args[i + 1] for i, a in enumerate(args) if a == "--wait-reader"}
     assert readers == {"rgbd_odometry"}
     assert "trunk_detector" in specs and "trunk_detector" in waited
+    # the ground fitter answers each side's geometry: there and waited for on every replay
+    assert "local_ground_fitter" in specs and "local_ground_fitter" in waited
+    assert "ground_fitter:=node" in specs["rgbd_odometry"].args and specs["local_ground_fitter"].restart
     # the merge's nodes exist only where two sides are merged, and are then waited for too
-    assert waited - {"trunk_detector"} == ({"side_merger", "trait_reporter"} & set(specs))
+    assert waited - {"trunk_detector", "local_ground_fitter"} == ({"side_merger", "trait_reporter"} & set(specs))
     # a replay waits for the detector's answers long enough to give the offline trees on a loaded machine
     assert "detector_timeout_s:=60.0" in specs["rgbd_odometry"].args
     # every node waited for starts before the player

@@ -63,7 +63,7 @@ def test_the_finishing_thread_goes_on_after_the_node_is_marked_done(node, monkey
     it is still finished and published by the same thread."""
     import orchard_mapping.ros.rgbd_odometry as mod
 
-    def fake_finish(session, timings):
+    def fake_finish(session, timings, grounds=None):
         if session.side == "front":
             raise OrchardMappingError("no keyframes")
         return SimpleNamespace(side=session.side, keyframe_poses=[np.eye(4)], cloud_points=np.zeros((5, 3)),
@@ -81,3 +81,49 @@ def test_the_finishing_thread_goes_on_after_the_node_is_marked_done(node, monkey
     assert node._done.is_set()
     assert [sm.side for sm in published] == ["back"]
     assert finisher.is_alive()
+
+
+@pytest.fixture
+def ground_node():
+    from orchard_mapping.ros.rgbd_odometry import RGBDOdometryNode
+
+    rclpy.init(args=["--ros-args", "-p", "ground_fitter:=node", "-p", "ground_fitter_timeout_s:=0.5"])
+    n = RGBDOdometryNode()
+    try:
+        yield n
+    finally:
+        n._finish.put(None)
+        n._work.put(("stop", None))
+        n.destroy_node()
+        rclpy.try_shutdown()
+
+
+def test_a_side_waits_for_the_ground_fitters_answer_to_its_own_geometry(ground_node):
+    """With ground_fitter:=node the side's geometry is published and the grounds answered for its stamp come back
+    (an answer for another stamp is not it); without an answer the side's finishing fits them (None), and the
+    status says so."""
+    import threading
+
+    from orchard_mapping.core.cylinder import Cylinder
+    from orchard_mapping.core.trunks import TrunkGround
+    from orchard_mapping.ros.messages import trunk_grounds_to_msg
+
+    node = ground_node
+    assert "geometry" in node._side_pubs("front") and "grounds" not in node._side_pubs("front")
+    info = {"side": "front", "frame_id": "odom_front", "stamp": 7.25, "keyframes": 3, "cloud_points": 10}
+    ground = TrunkGround(0, ((0, 0), (2, 1)), np.arange(5), Cylinder(np.array([0.0, -1.0, 0.0]),
+                                                                     np.array([0.1, 0.3, 1.2]), 0.03),
+                         -0.3, 0.4, None, None)
+
+    def answer() -> None:
+        time.sleep(0.1)
+        node._on_grounds("front", trunk_grounds_to_msg([ground], "front", "odom_front", 3.0))  # another side's end
+        node._on_grounds("front", trunk_grounds_to_msg([ground], "front", "odom_front", 7.25))
+
+    threading.Thread(target=answer, daemon=True).start()
+    got = node._ask_ground_fitter(info, b"payload")
+    assert got is not None and len(got) == 1 and got[0].detections == ((0, 0), (2, 1))
+    np.testing.assert_array_equal(got[0].point_indices, np.arange(5))
+    assert got[0].ground is None and got[0].wide_ground is None and node.counts.grounds_here == []
+    assert node._ask_ground_fitter({**info, "stamp": 9.5}, b"payload") is None  # no answer within 0.5 s
+    assert node.counts.grounds_here == ["front"] and not node.errors

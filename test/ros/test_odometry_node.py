@@ -1,6 +1,6 @@
 """The node graph against `orchard-map run`: `orchard-map launch --bag front --bag back --record --out`
-replays both sides of the 2-tree standard row at 1x (player, odometry, trunk detector, side merger, trait
-reporter and recorder each in its own process, loopback DDS): the side maps hold the trunks the offline run
+replays both sides of the 2-tree standard row at 1x (player, odometry, trunk detector, local ground fitter,
+side merger, trait reporter and recorder each in its own process, loopback DDS): the side maps hold the trunks the offline run
 found, at the same places, no frame is lost on the way, and the trees published (TreeTraitsArray, decoded
 from the recording) and written are the offline run's."""
 
@@ -50,6 +50,12 @@ def test_launched_graph_on_bags_gives_the_offline_trunks(standard_row, tmp_path)
     assert status["unpaired"] == status["missed"] == status["lost_vs_player"] == 0, status
     assert sum(status["processed"].values()) == sent and not status["errors"], status
     assert status["finished"] == ["front", "back"], status
+    # the local_ground_fitter node answered both sides (the odometry node fitted no grounds itself)
+    assert status["grounds_here"] == [], status
+    # (a landmark found to be a trellis post has a ground there too, and is no trunk of trunks.json)
+    grounds = [m for _, m in iter_messages(rec, "/orchard/front/local_grounds")]
+    assert len(grounds) == 1 and len(grounds[0].grounds) >= sum(t.side == "front" for t in
+                                                                read_trunks(offline / "trunks.json")) > 0
 
     written = read_trunks(offline / "trunks.json")
     for side in ("front", "back"):
