@@ -27,6 +27,9 @@ class RowView:
     title: str
     points: dict[str, np.ndarray]  # side -> (P, 3)
     trunks: dict[str, np.ndarray]  # side -> (T, 3) trunk bases
+    # per tree: its trunk's foot (3,) in map, its height (m, None: not measured) and its label ("id, height,
+    # volume"), written above the tree in the front view
+    labels: tuple[tuple[np.ndarray, float | None, str], ...] = ()
 
 
 def write_row_png(path: Path, T_canon_map: np.ndarray, views: list[RowView], seed: int = 0) -> None:
@@ -62,6 +65,10 @@ def write_row_png(path: Path, T_canon_map: np.ndarray, views: list[RowView], see
                       linewidths=1.2)
             top.scatter(c[:, 0], c[:, 2], label=f"{side} trunks", **mk)
             front.scatter(c[:, 0], c[:, 1], **mk)
+        for foot, height, text in view.labels:
+            f = canon(foot)[0]
+            front.annotate(text, (f[0], f[1] + (height or 0.0)), xytext=(0, 4), textcoords="offset points",
+                           ha="center", va="bottom", fontsize=6)
         top.set_title(f"{view.title}: top view")
         front.set_title(f"{view.title}: front view")
         top.set_ylabel("depth Z (m)")

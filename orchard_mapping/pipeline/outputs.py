@@ -87,8 +87,9 @@ def write_landmarks(out: Path, sides: dict[str, SideMap], cfg: OrchardConfig) ->
 
 
 def write_merge(out: Path, m: MergeOutcome, sides: dict[str, SideMap],
-                clouds: dict[str, np.ndarray] | None = None) -> None:
-    """side_merge.json, both sides' trajectories in map (= odom_front), merged.ply and row.png."""
+                clouds: dict[str, np.ndarray] | None = None, trees: list[ResultTree] | None = None) -> None:
+    """side_merge.json, both sides' trajectories in map (= odom_front), merged.ply and row.png (with `trees`,
+    each tree's id, height and volume above it)."""
     al, it, sba = m.alignment, m.initial, m.sba
     extra: dict = {}
     if sba is not None:
@@ -133,8 +134,18 @@ def write_merge(out: Path, m: MergeOutcome, sides: dict[str, SideMap],
             {"front": bases["front"], "back": bases["back"] @ Ta[:3, :3].T + Ta[:3, 3]})
         label = {"semantic_ba": "semantic BA", "initial": "initial transform"}.get(m.method, m.method)
         after = RowView(f"after: {label}", moved, {
-            side: move_with_keyframes(bases[side], own[side], poses[side]) for side in poses})
+            side: move_with_keyframes(bases[side], own[side], poses[side]) for side in poses},
+            tuple((np.asarray(t.position, float), t.height_m, tree_label(t, short=True)) for t in trees or []))
         write_row_png(out / ROW_PNG, al.front.T_canon_odom, [before, after], seed=0)
+
+
+def tree_label(t: ResultTree, short: bool = False) -> str:
+    """"tree <id>: trunk <mm>, height <m>, canopy <m3>", the title of trees/<id>.png; short: three lines (id,
+    height, volume), its label in row.png (~0.5 inch of width per tree)."""
+    d = f"{1000 * t.trunk_diameter_m:.0f} mm" if t.trunk_diameter_m else "n/a"
+    h = f"{t.height_m:.2f} m" if t.height_m is not None else "n/a"
+    v = f"{t.canopy_volume_m3:.2f} m\u00b3" if t.canopy_volume_m3 is not None else "n/a"
+    return f"{t.id}\n{h}\n{v}" if short else f"tree {t.id}: trunk {d}, height {h}, canopy {v}"
 
 
 def write_tree_cloud(out: Path, labels: RowLabels, trees: list[ResultTree] | None = None) -> None:
@@ -145,9 +156,6 @@ def write_tree_cloud(out: Path, labels: RowLabels, trees: list[ResultTree] | Non
         mine = labels.tree_id == t.id
         if not mine.any():
             continue
-        d = f"{1000 * t.trunk_diameter_m:.0f} mm" if t.trunk_diameter_m else "n/a"
-        h = f"{t.height_m:.2f} m" if t.height_m is not None else "n/a"
-        v = f"{t.canopy_volume_m3:.2f} m3" if t.canopy_volume_m3 is not None else "n/a"
-        write_tree_png(out / TREE_FIGURES / f"{t.id}.png", f"tree {t.id}: trunk {d}, height {h}, canopy {v}",
+        write_tree_png(out / TREE_FIGURES / f"{t.id}.png", tree_label(t),
                        (labels.points[mine] - np.asarray(t.position)) @ labels.R_row_map.T,
                        labels.classification[mine], t.height_m, t.extra.get("clear_trunk_height_m"))

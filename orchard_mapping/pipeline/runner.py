@@ -104,7 +104,7 @@ def _run(front: Path, back: Path | None, out: Path, cfg: OrchardConfig, progress
                     log.warning("side merge refused: %s (no side_merge.json written)", err)
                     refused = str(err)
                 else:
-                    write_merge(out, merged, sides, clouds)
+                    write_merge(out, merged, sides, clouds, trees)
                     write_trees(out, trees, frame="map")
                     write_tree_cloud(out, labels, trees)
                 timings.add("merge", time.perf_counter() - t0 - traits_s)

@@ -157,7 +157,7 @@ class SideMergerNode(Node):
         """The merge's files into `out`, each moved in only once all were written (a stop meanwhile leaves
         the earlier set whole), as `orchard-map run` writes its result folder."""
         with staged_folder(out) as stage:
-            write_merge(stage, merged, self.maps, clouds)
+            write_merge(stage, merged, self.maps, clouds, trees)
             write_tree_cloud(stage, labels, trees)
 
     def _publish(self, merged: MergeOutcome, clouds: dict[str, np.ndarray], trees: list) -> None:
