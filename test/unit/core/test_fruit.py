@@ -1,0 +1,109 @@
+"""core.fruit: fruit placed from instances and depth, one fruit per cluster of views, both sides once."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+from orchard_mapping.core.fruit import (
+    FruitError,
+    FruitParams,
+    SideFruit,
+    associate_sides,
+    fruit_observations,
+    fruit_of_side,
+    inclusion_exclusion_count,
+)
+from orchard_mapping.core.types import CameraIntrinsics
+
+INTR = CameraIntrinsics(640, 480, 615.0, 615.0, 319.5, 239.5)
+
+
+def _render(centres: np.ndarray, radii: np.ndarray, T_odom_cam: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Depth (H, W) m and instances (H, W) of spheres (odom) seen by a pinhole camera: ray-sphere hits."""
+    v, u = np.mgrid[0:INTR.height, 0:INTR.width]
+    rays = np.stack([(u - INTR.cx) / INTR.fx, (v - INTR.cy) / INTR.fy, np.ones_like(u, float)], -1)  # (H, W, 3)
+    T_cam_odom = np.linalg.inv(T_odom_cam)
+    depth = np.zeros(u.shape)
+    inst = np.zeros(u.shape, np.int32)
+    for k, (c, r) in enumerate(zip(centres, radii, strict=True)):
+        cc = T_cam_odom[:3, :3] @ c + T_cam_odom[:3, 3]
+        # |t ray - cc|^2 = r^2 with the ray's z = 1: t = depth
+        a = np.sum(rays**2, -1)
+        b = rays @ cc
+        disc = b**2 - a * (cc @ cc - r * r)
+        hit = disc > 0
+        t = np.where(hit, (b - np.sqrt(np.maximum(disc, 0))) / a, np.inf)
+        nearer = hit & ((depth == 0) | (t < depth))
+        depth[nearer] = t[nearer]
+        inst[nearer] = k + 1
+    return depth.astype(np.float32), inst
+
+
+def _pose(x: float) -> np.ndarray:
+    T = np.eye(4)
+    T[0, 3] = x
+    return T
+
+
+def test_a_whole_sphere_is_placed_within_millimetres():
+    rng = np.random.default_rng(0)
+    centres = np.column_stack([rng.uniform(-0.3, 0.3, 6), rng.uniform(-0.2, 0.2, 6), rng.uniform(1.0, 1.8, 6)])
+    centres[:, 0] = np.linspace(-0.4, 0.4, 6)
+    radii = rng.uniform(0.035, 0.045, 6)
+    depth, inst = _render(centres, radii, np.eye(4))
+    obs = fruit_observations(inst, depth, np.eye(4), INTR, FruitParams())
+    assert len(obs) == 6
+    for o in obs:
+        k = o.instance - 1
+        assert np.linalg.norm(o.centre - centres[k]) < 0.004
+        assert abs(o.radius_m - radii[k]) < 0.002
+
+
+def test_a_fruit_cut_by_the_border_or_too_small_is_not_observed():
+    centres = np.array([[-0.62, 0.0, 1.2], [0.0, 0.0, 1.2]])  # the first is cut by the left border
+    depth, inst = _render(centres, np.array([0.04, 0.008]), np.eye(4))  # the second is 8 mm: a bud
+    assert fruit_observations(inst, depth, np.eye(4), INTR, FruitParams()) == []
+
+
+def test_views_of_one_fruit_make_one_fruit_and_touching_fruit_stay_two():
+    centres = np.array([[0.0, 0.0, 1.3], [0.08, 0.0, 1.3], [0.5, 0.1, 1.5]])  # first two touch (r 4 cm)
+    radii = np.array([0.04, 0.04, 0.04])
+    obs = []
+    for k, x in enumerate(np.arange(-0.3, 0.31, 0.15)):  # five keyframes 15 cm apart
+        depth, inst = _render(centres, radii, _pose(x))
+        obs += fruit_observations(inst, depth, _pose(x), INTR, FruitParams(), keyframe=k)
+    side = fruit_of_side("front", obs, FruitParams())
+    assert len(side.positions) == 3
+    d = np.linalg.norm(side.positions[:, None] - centres[None], axis=2)
+    assert np.all(d.min(axis=1) < 0.005) and len(set(d.argmin(axis=1).tolist())) == 3
+    assert np.all(np.abs(side.diameters_m - 0.08) < 0.004)
+    # seen in fewer keyframes than min_views: dropped
+    assert len(fruit_of_side("front", [o for o in obs if o.keyframe < 2], FruitParams()).positions) == 0
+
+
+def test_both_sides_count_each_fruit_once_and_the_baselines_differ():
+    rng = np.random.default_rng(5)
+    true = np.column_stack([np.arange(20) * 0.09, rng.uniform(-0.3, 0.3, 20), rng.uniform(0.8, 2.0, 20)])
+    dia = np.full(20, 0.08)
+    f_idx, b_idx = np.arange(0, 14), np.arange(8, 20)  # 6 seen from both sides
+    front = SideFruit("front", true[f_idx] + rng.normal(0, 0.005, (14, 3)), dia[f_idx], np.full(14, 4))
+    back = SideFruit("back", true[b_idx] + rng.normal(0, 0.005, (12, 3)), dia[b_idx], np.full(12, 4))
+    row = associate_sides(front, back, FruitParams())
+    assert len(row.positions) == 20
+    assert (row.seen_from == "both").sum() == 6
+    both = row.seen_from == "both"
+    assert np.all(f_idx[row.front_index[both]] == b_idx[row.back_index[both]])
+    assert inclusion_exclusion_count(front, back, FruitParams()) == 20
+    # fruit one touching distance apart on the other side are not merged: 0.09 m apart, gate 1 x radius (4 cm)
+    shifted = SideFruit("back", back.positions + [0.09 / 2, 0, 0], back.diameters_m, back.views)
+    assert (associate_sides(front, shifted, FruitParams()).seen_from == "both").sum() == 0
+
+
+def test_bad_input_is_refused_with_what_is_wrong():
+    with pytest.raises(FruitError, match="depth must be"):
+        fruit_observations(np.zeros((4, 4), int), np.zeros((5, 4)), np.eye(4), INTR, FruitParams())
+    with pytest.raises(FruitError, match="T_odom_cam"):
+        fruit_observations(np.zeros((4, 4), int), np.zeros((4, 4)), np.eye(3), INTR, FruitParams())
+    with pytest.raises(FruitError, match="max_radius_m"):
+        FruitParams(min_radius_m=0.1, max_radius_m=0.05)
