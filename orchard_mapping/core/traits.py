@@ -107,6 +107,8 @@ class TreeMorphology:
     n_points: int  # points of the tree (input cloud)
     clear_height_m: float  # m, where its canopy begins (given, or from its points); nan unknown
     separated: bool  # shrink-and-expand split both neighbouring pairs (True for cutting planes)
+    # m, the height of each side's points of the tree alone (point_sides codes 0, 1); nan where that side has none
+    height_by_side: tuple[float, float] = (float("nan"), float("nan"))
 
 
 @dataclass(frozen=True)
@@ -119,13 +121,15 @@ class RowTraits:
 def measure_row(points: np.ndarray, trunk_positions: np.ndarray, ground_points: np.ndarray,
                 ground_normals: np.ndarray, clear_heights: np.ndarray, row_direction: np.ndarray,
                 params: TraitsParams, *, post_points: np.ndarray | None = None,
-                post_radius_m: float = 0.0, trunk_radii: np.ndarray | None = None) -> RowTraits:
+                post_radius_m: float = 0.0, trunk_radii: np.ndarray | None = None,
+                point_sides: np.ndarray | None = None) -> RowTraits:
     """Traits of every tree of a merged row: points (N, 3); per tree (T): trunk_positions (T, 3), the point of
     each trunk's line the row is split at (the cutting planes and the shrink's trunk lines pass through it:
     where the axis meets the ground, or, for leaning trees, the axis at crown height), the local ground planes (ground_points (T, 3), unit-up
     ground_normals (T, 3)), clear trunk heights (T,) m (NaN: where the tree's own points say the canopy
     begins, core.canopy.canopy_base_height, off its trunk of radius trunk_radii (T,) m); the row direction
-    (3,); vertical posts standing on post_points (P, 3) with radius post_radius_m."""
+    (3,); vertical posts standing on post_points (P, 3) with radius post_radius_m; point_sides (N,) 0 / 1: the
+    side each point came from (each tree's height is then also measured on each side's points alone)."""
     pts = np.asarray(points, float)
     tr = np.asarray(trunk_positions, float).reshape(-1, 3)
     gp = np.asarray(ground_points, float).reshape(-1, 3)
@@ -168,9 +172,18 @@ def measure_row(points: np.ndarray, trunk_positions: np.ndarray, ground_points: 
     for t in range(len(tr)):
         mine = tree == t
         n_pts = int(mine.sum())
-        body = pts[mine][main_body(pts[mine], params.body_cell_m)] if n_pts else pts[:0]
-        h = tree_height(body, gp[t], gn[t], support_radius_m=params.height_support_radius_m,
-                        min_support=params.height_min_support) if n_pts else float("nan")
+        in_body = main_body(pts[mine], params.body_cell_m) if n_pts else np.zeros(0, bool)
+        body = pts[mine][in_body]
+
+        def height_of(p: np.ndarray, t: int = t) -> float:
+            return tree_height(p, gp[t], gn[t], support_radius_m=params.height_support_radius_m,
+                               min_support=params.height_min_support) if len(p) else float("nan")
+
+        h = height_of(body)
+        by_side = (float("nan"), float("nan"))
+        if point_sides is not None and n_pts:
+            body_side = np.asarray(point_sides)[mine][in_body]
+            by_side = (height_of(body[body_side == 0]), height_of(body[body_side == 1]))
         c = float(clear[t])
         mine_v = cen[tree_v == t]  # (M, 3) the tree's voxels
         if not np.isfinite(c) and n_pts:
@@ -182,5 +195,5 @@ def measure_row(points: np.ndarray, trunk_positions: np.ndarray, ground_points: 
              if np.isfinite(c) else float("nan"))
         k = rank[t]
         sep = bool((k == 0 or separated[k - 1]) and (k == len(tr) - 1 or separated[k]))
-        out.append(TreeMorphology(t, h, v, n_pts, c, sep))
+        out.append(TreeMorphology(t, h, v, n_pts, c, sep, by_side))
     return RowTraits(tree, kind_v[inv].astype(np.int8), tuple(out))

@@ -70,3 +70,17 @@ def test_bad_settings_and_inputs_are_typed_errors():
         measure_row(r.points, r.trunk_positions, r.ground_points[:1], r.ground_normals, np.full(2, np.nan), ROW,
                     TraitsParams())
     assert KIND_TREE == 0
+
+
+def test_each_sides_points_give_their_own_height():
+    """point_sides: the front half of a crown (y < 0, the camera's side) keeps the top, the back half is cut 15 cm
+    lower: the front side's height is the tree's, the back side's 15 cm less (within the 2 cm goal)."""
+    r = synthetic_row(4, n_trees=1, spacing_m=0.9)
+    h = height_above_plane(r.points, r.ground_points[0], r.ground_normals[0])
+    back = r.points[:, 1] > r.trunk_positions[0, 1]
+    keep = ~back | (h < r.heights[0] - 0.15)
+    got = measure_row(r.points[keep], r.trunk_positions, r.ground_points, r.ground_normals, np.full(1, np.nan), ROW,
+                      TraitsParams(), point_sides=back[keep].astype(int)).trees[0]
+    front_h, back_h = got.height_by_side
+    assert abs(front_h - r.heights[0]) < 0.02 and abs(got.height_m - r.heights[0]) < 0.02
+    assert abs(back_h - (r.heights[0] - 0.15)) < 0.02
