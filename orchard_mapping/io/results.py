@@ -75,6 +75,24 @@ TREES_CSV_COLUMNS = (
     "fruit_count",
     "flags",
 )
+# After those, what a grower compares besides: each trait's 90 % interval, each side's own values, the fruit seen
+# from each side, where the canopy begins. Empty where not measured. A reader needs only the columns above.
+TREES_CSV_MORE_COLUMNS = (
+    "trunk_diameter_lo_m",
+    "trunk_diameter_hi_m",
+    "height_lo_m",
+    "height_hi_m",
+    "canopy_volume_lo_m3",
+    "canopy_volume_hi_m3",
+    "trunk_diameter_front_m",
+    "trunk_diameter_back_m",
+    "height_front_m",
+    "height_back_m",
+    "fruit_count_front",
+    "fruit_count_back",
+    "fruit_on_ground",
+    "clear_trunk_height_m",
+)
 TREES_FRAMES = ("map", "odom_front")  # frames trees.json may state (map == odom_front after merging)
 _TREE_KEYS = {
     "id",
@@ -321,16 +339,37 @@ def write_trees(
     parsed = _trees_from_document(json.loads(text), json_path)
     buf = io.StringIO()
     w = csv.writer(buf, lineterminator="\n")
-    w.writerow(TREES_CSV_COLUMNS)
+    w.writerow(TREES_CSV_COLUMNS + TREES_CSV_MORE_COLUMNS)
     for t in parsed:
         w.writerow(
             [t.id, *(repr(p) for p in t.position)]
             + [_csv_value(v) for v in (t.trunk_diameter_m, t.height_m, t.canopy_volume_m3, t.fruit_count)]
             + [";".join(t.flags)]
+            + [_csv_value(v) for v in _more_values(t)]
         )
     atomic_write_text(json_path, text)
     atomic_write_text(csv_path, buf.getvalue())
     return json_path, csv_path
+
+
+def _more_values(t: ResultTree) -> list[Any]:
+    """The TREES_CSV_MORE_COLUMNS of a tree (None where trees.json has no such value)."""
+    iv = t.extra.get("interval_90") or {}
+    side = t.per_side or {}
+
+    def bound(trait: str, k: int) -> Any:
+        b = iv.get(trait)
+        return b[k] if isinstance(b, (list, tuple)) and len(b) == 2 else None
+
+    def own(s: str, key: str) -> Any:
+        v = side.get(s)
+        return v.get(key) if isinstance(v, dict) else None
+
+    return [bound("trunk_diameter_m", 0), bound("trunk_diameter_m", 1), bound("height_m", 0), bound("height_m", 1),
+            bound("canopy_volume_m3", 0), bound("canopy_volume_m3", 1),
+            own("front", "diameter_m"), own("back", "diameter_m"), own("front", "height_m"), own("back", "height_m"),
+            t.extra.get("fruit_count_front"), t.extra.get("fruit_count_back"), t.extra.get("fruit_on_ground"),
+            t.extra.get("clear_trunk_height_m")]
 
 
 def read_trees(path: str | Path) -> list[ResultTree]:
@@ -351,14 +390,15 @@ def read_trees_csv(path: str | Path) -> list[ResultTree]:
     except FileNotFoundError as err:
         raise ResultFormatError(f"{path}: file not found") from err
     rows = list(csv.reader(io.StringIO(text)))
-    if not rows or tuple(rows[0]) != TREES_CSV_COLUMNS:
+    if not rows or tuple(rows[0][: len(TREES_CSV_COLUMNS)]) != TREES_CSV_COLUMNS:
         raise ResultFormatError(f"{path}:1: expected header {','.join(TREES_CSV_COLUMNS)}")
+    width = len(rows[0])
     out = []
     for lineno, row in enumerate(rows[1:], start=2):
         if not row:
             continue
-        if len(row) != len(TREES_CSV_COLUMNS):
-            raise ResultFormatError(f"{path}:{lineno}: expected {len(TREES_CSV_COLUMNS)} columns, got {len(row)}")
+        if len(row) != width:
+            raise ResultFormatError(f"{path}:{lineno}: expected {width} columns, got {len(row)}")
         try:
             vals = [None if c == "" else float(c) for c in row[1:8]]
             tid = int(row[0])

@@ -49,8 +49,13 @@ def test_trees_round_trip_json_and_csv(tmp_path: Path) -> None:
     assert back[1].trunk_diameter_m is None and back[1].fruit_positions is None
     assert back[2].fruit_count == 4 and back[2].extra == {"intervals": {"h": [2, 3]}}
     lines = cp.read_text().splitlines()
-    assert lines[0] == "id,x_m,y_m,z_m,trunk_diameter_m,height_m,canopy_volume_m3,fruit_count,flags"
-    assert lines[2] == "1,1.0,0.5,2.0,,2.2,1.1,,"
+    base = "id,x_m,y_m,z_m,trunk_diameter_m,height_m,canopy_volume_m3,fruit_count,flags"
+    assert lines[0] == ",".join([base, *R.TREES_CSV_MORE_COLUMNS])
+    assert lines[2] == "1,1.0,0.5,2.0,,2.2,1.1,," + "," * len(R.TREES_CSV_MORE_COLUMNS)
+    # a file of the base columns alone (older results) still reads
+    old = tmp_path / "old.csv"
+    old.write_text("\n".join([base, "1,1.0,0.5,2.0,,2.2,1.1,,"]) + "\n")
+    assert R.read_trees_csv(old)[0].height_m == 2.2
     csv_back = R.read_trees_csv(cp)
     assert [(t.id, t.position, t.trunk_diameter_m, t.fruit_count, t.flags) for t in csv_back] == [
         (t.id, t.position, t.trunk_diameter_m, t.fruit_count, t.flags) for t in back
@@ -183,3 +188,20 @@ def test_atomic_write_failure_mid_write(tmp_path: Path, monkeypatch: pytest.Monk
         R.atomic_write_text(target, "new content that never lands\n")
     assert target.read_text() == "previous\n"
     assert _leftovers(tmp_path) == []
+
+
+def test_trees_csv_carries_intervals_sides_and_fruit_counts(tmp_path: Path) -> None:
+    t = R.ResultTree(3, (1.0, 2.0, 0.0), 0.07, 2.3, 0.5, 30, per_side={
+        "front": {"trunk_id": 1, "diameter_m": 0.069, "height_m": 2.29}, "back": {"trunk_id": 4, "diameter_m": 0.071}},
+        extra={"interval_90": {"height_m": [2.27, 2.33], "canopy_volume_m3": [0.44, 0.56]},
+               "fruit_count_front": 21, "fruit_count_back": 18, "fruit_on_ground": 2, "clear_trunk_height_m": 0.6})
+    _, cp = R.write_trees(tmp_path, [t])
+    header, row = (line.split(",") for line in cp.read_text().splitlines())
+    got = dict(zip(header, row, strict=True))
+    assert (got["height_lo_m"], got["height_hi_m"]) == ("2.27", "2.33")
+    assert got["trunk_diameter_lo_m"] == "" and got["canopy_volume_hi_m3"] == "0.56"
+    assert (got["trunk_diameter_front_m"], got["trunk_diameter_back_m"]) == ("0.069", "0.071")
+    assert (got["height_front_m"], got["height_back_m"]) == ("2.29", "")
+    assert (got["fruit_count"], got["fruit_count_front"], got["fruit_count_back"], got["fruit_on_ground"]) == (
+        "30", "21", "18", "2")
+    assert got["clear_trunk_height_m"] == "0.6"
