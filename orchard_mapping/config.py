@@ -16,6 +16,7 @@ from pydantic import BaseModel, ConfigDict, Field, ValidationError
 
 from orchard_mapping.core.alignment_types import AlignmentParams
 from orchard_mapping.core.bundle_adjustment import BundleAdjustmentParams
+from orchard_mapping.core.fruit import FruitParams
 from orchard_mapping.core.fusion import FusionParams
 from orchard_mapping.core.ground import GroundParams
 from orchard_mapping.core.loop_closure import LoopParams
@@ -85,6 +86,7 @@ class OrchardConfig(_Section):
     merge: MergeParams = MergeParams()
     semantic_ba: SemanticBAParams = SemanticBAParams()
     traits: TraitsParams = TraitsParams()
+    fruit: FruitParams = FruitParams()
     evaluate: EvaluateConfig = EvaluateConfig()
     seed: int = 0
 

@@ -56,7 +56,15 @@ MIN_INNER_PIXELS = 10  # fewer pixels inside the outline: the outline's own dept
 
 @dataclass(frozen=True)
 class FruitParams:
-    """config `fruit` section."""
+    """config `fruit` section: where fruit are looked for, and how they are placed, linked and matched."""
+
+    enabled: bool = False  # off: no fruit stage (fruit_count stays empty)
+    # the pixel model (core.fruit_pixels; a relative path is looked up from the working directory, then
+    # beside the package)
+    model: str = "models/fruit_colour_gmm.json"
+    # m of camera path between the keyframes searched for fruit: the trunk detector's spacing (a fruit is in
+    # view for ~1.5 m of path at 1.4 m range: about ten looks)
+    every_m: float = 0.15
 
     min_pixels: int = 20  # px with depth an instance needs (the simulator's visibility rule: 20 px)
     min_radius_m: float = 0.015  # an instance smaller than this at its depth is no fruit (a berry, a bud)
@@ -72,7 +80,7 @@ class FruitParams:
     ground_margin_m: float = 0.10  # a fruit whose bottom is less than this above the local ground lies on it
 
     def __post_init__(self) -> None:
-        for name in ("min_radius_m", "max_radius_m", "link_factor", "match_factor"):
+        for name in ("min_radius_m", "max_radius_m", "link_factor", "match_factor", "every_m"):
             if not getattr(self, name) > 0:
                 raise FruitError(f"fruit.{name} must be > 0, got {getattr(self, name)!r}")
         if not self.max_radius_m > self.min_radius_m:

@@ -11,6 +11,7 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
+from orchard_mapping.core.fruit import SideFruit
 from orchard_mapping.core.types import CameraIntrinsics
 
 
@@ -85,6 +86,8 @@ class SideMap:
     trunks: list = field(default_factory=list)
     # trellis posts seen (core.posts.PostLandmark): they tie the side's sweeps in the semantic BA
     posts: list = field(default_factory=list)
+    # the side's fruit (core.fruit.SideFruit, odom), None where the fruit stage did not run
+    fruit: SideFruit | None = None
 
 
 @dataclass(frozen=True)

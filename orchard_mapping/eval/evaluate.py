@@ -251,7 +251,13 @@ def _trees_part(
             T_front_world, np.concatenate([np.zeros((0, 3))] + [t.fruit_positions for t in gt.trees])
         )
         radii = np.concatenate([np.zeros(0)] + [t.fruit_radii for t in gt.trees])
-        dc = double_count(est_f, true_f, radii, gate_factor)
+        # the estimates' diameters where trees.json gives them beside the positions (fruit_diameters_m)
+        dia = np.concatenate([np.zeros(0)] + [
+            np.asarray(t.extra.get("fruit_diameters_m", [np.nan] * len(t.fruit_positions)), float).reshape(-1)
+            if len(t.extra.get("fruit_diameters_m", [])) == len(t.fruit_positions)
+            else np.full(len(t.fruit_positions), np.nan) for t in trees if t.fruit_positions is not None])
+        both = sum(int(t.fruit_visible.get("both", 0)) for t in gt.trees)
+        dc = double_count(est_f, true_f, radii, gate_factor, est_diameter_m=dia, true_seen_from_both=both)
     return summary, pairs, traits, fruit, dc
 
 

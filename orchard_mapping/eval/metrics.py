@@ -83,15 +83,22 @@ class DoubleCount:
     false: int  # estimates with no true fruit within the gate
     rate_percent: float | None  # duplicates / estimated x 100
     gate_factor: float  # gate = gate_factor x the true fruit's radius
+    position_error_median_mm: float | None = None  # mm, matched estimates to their true fruit's centre
+    diameter_mae_mm: float | None = None  # mm, matched estimates with a diameter
+    diameter_bias_mm: float | None = None  # mm, signed mean of the same
+    # duplicates per 100 true fruit seen from both sides (the ones a two-side count can count twice)
+    per_both_percent: float | None = None
 
 
 def double_count(
-    est_xyz: np.ndarray, true_xyz: np.ndarray, true_radius_m: np.ndarray, gate_factor: float = 1.5
+    est_xyz: np.ndarray, true_xyz: np.ndarray, true_radius_m: np.ndarray, gate_factor: float = 1.5,
+    est_diameter_m: np.ndarray | None = None, true_seen_from_both: int | None = None,
 ) -> DoubleCount:
     """Each estimate claims its nearest true fruit if within gate_factor x that fruit's radius.
 
     A true fruit claimed by k > 1 estimates contributes k - 1 duplicates
-    (independent of the order of the estimates).
+    (independent of the order of the estimates). est_diameter_m (n,; NaN unknown): scored against twice the
+    claimed fruit's radius. true_seen_from_both: the true fruit visible from both sides (per_both_percent).
     """
     est_xyz = np.asarray(est_xyz, dtype=float).reshape(-1, 3)
     true_xyz = np.asarray(true_xyz, dtype=float).reshape(-1, 3)
@@ -104,6 +111,10 @@ def double_count(
     claimed = np.bincount(idx[hit], minlength=true_xyz.shape[0])  # (F,)
     unique = int(np.count_nonzero(claimed))
     dup = int(hit.sum()) - unique
+    dia_err = None
+    if est_diameter_m is not None:
+        e = np.asarray(est_diameter_m, float).reshape(-1)[hit] - 2.0 * radii[idx[hit]]
+        dia_err = e[np.isfinite(e)]
     return DoubleCount(
         estimated=n,
         matched=int(hit.sum()),
@@ -112,6 +123,10 @@ def double_count(
         false=int(n - hit.sum()),
         rate_percent=100.0 * dup / n,
         gate_factor=gate_factor,
+        position_error_median_mm=float(1000 * np.median(dist[hit])) if hit.any() else None,
+        diameter_mae_mm=float(1000 * np.mean(np.abs(dia_err))) if dia_err is not None and len(dia_err) else None,
+        diameter_bias_mm=float(1000 * np.mean(dia_err)) if dia_err is not None and len(dia_err) else None,
+        per_both_percent=100.0 * dup / true_seen_from_both if true_seen_from_both else None,
     )
 
 

@@ -253,6 +253,12 @@ class EvaluationReport:
                     f"{d.duplicates} of {d.estimated} estimated fruit; {d.false} matched no true fruit",
                 )
             )
+            rows += [
+                ("fruit counted twice", _fmt(d.per_both_percent, 1), "%", "duplicates per true fruit seen from both sides"),
+                ("fruit position error", _fmt(d.position_error_median_mm, 1), "mm", f"median over {d.matched} matched"),
+                ("fruit diameter MAE", _fmt(d.diameter_mae_mm, 1), "mm",
+                 f"signed {_fmt(d.diameter_bias_mm, 1, True)} mm"),
+            ]
         g = self.merge
         if g is None:
             na("merge rotation error", "merge")

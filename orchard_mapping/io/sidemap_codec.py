@@ -22,6 +22,7 @@ import numpy as np
 
 from orchard_mapping.core.cylinder import Cylinder, CylinderFit, CylinderView
 from orchard_mapping.core.detection import Detection
+from orchard_mapping.core.fruit import SideFruit
 from orchard_mapping.core.ground import LocalGroundFit
 from orchard_mapping.core.posts import PostLandmark, PostObservation
 from orchard_mapping.core.sidemap import LoopClosure, Observations, SideGeometry, SideMap
@@ -37,7 +38,8 @@ SIDE_GEOMETRY_ENCODING = "orchard_mapping.side_geometry/1+npz"
 
 _TYPES = {cls.__name__: cls for cls in (SideMap, SideGeometry, CameraIntrinsics, Observations, LoopClosure,
                                         TrunkLandmark, TrunkObservation, TrunkView, Detection, Cylinder, CylinderFit,
-                                        CylinderView, LocalGroundFit, ImagePatch, PostLandmark, PostObservation)}
+                                        CylinderView, LocalGroundFit, ImagePatch, PostLandmark, PostObservation,
+                                        SideFruit)}
 _TREE = "__tree__"
 
 
@@ -123,7 +125,10 @@ def _decode(data: bytes, where: str, want: type, encoding: str) -> Any:
             if cls is None or not isinstance(v.get("fields"), dict):
                 raise SideMapFormatError(f"{where}: {at} is not a side map type ({v.get('$type')!r})")
             names = {f.name for f in dataclasses.fields(cls)}
-            if set(v["fields"]) != names:
+            # a field added since the bytes were written (it has a default) may be missing; nothing else
+            defaulted = {f.name for f in dataclasses.fields(cls)
+                         if f.default is not dataclasses.MISSING or f.default_factory is not dataclasses.MISSING}
+            if not (set(v["fields"]) <= names and names - set(v["fields"]) <= defaulted):
                 raise SideMapFormatError(f"{where}: {at} ({cls.__name__}) has fields {sorted(v['fields'])}, "
                                          f"expected {sorted(names)}")
             return cls(**{k: dec(x, f"{at}.{k}") for k, x in v["fields"].items()})

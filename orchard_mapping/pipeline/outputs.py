@@ -3,6 +3,8 @@ trunks and grounds, and the merge's outputs."""
 
 from __future__ import annotations
 
+import csv
+import io
 import os
 from collections.abc import Callable
 from dataclasses import asdict
@@ -22,19 +24,21 @@ from orchard_mapping.io.results import (
     TREES_CSV,
     TREES_JSON,
     ResultTree,
+    atomic_write_text,
     map_trajectory_filename,
     write_side_merge,
     write_tum,
 )
+from orchard_mapping.pipeline.fruit import TreeFruit
 from orchard_mapping.pipeline.merge import MergeOutcome, clouds_in_map, map_poses
 from orchard_mapping.pipeline.traits import RowLabels
 
 # What a merge writes into the result folder (docs/results.md).
-MERGED_PLY, ROW_PNG, TREE_FIGURES = "merged.ply", "row.png", "trees"
+MERGED_PLY, ROW_PNG, TREE_FIGURES, FRUIT_CSV = "merged.ply", "row.png", "trees", "fruit.csv"
 
 
 MERGE_OUTPUTS = (SIDE_MERGE_JSON, TREES_JSON, TREES_CSV, map_trajectory_filename("*"), MERGED_PLY, ROW_PNG,
-                 TREES_LAZ, TREE_FIGURES)
+                 TREES_LAZ, TREE_FIGURES, FRUIT_CSV)
 
 
 def write_cloud(path: Path, points: np.ndarray, colors: np.ndarray) -> None:
@@ -148,10 +152,28 @@ def tree_label(t: ResultTree, short: bool = False) -> str:
     return f"{t.id}\n{h}\n{v}" if short else f"tree {t.id}: trunk {d}, height {h}, canopy {v}"
 
 
+FRUIT_CSV_COLUMNS = ("id", "tree_id", "x_m", "y_m", "z_m", "diameter_m", "seen_from", "on_ground")
+
+
+def write_fruit_csv(path: Path, fruit: TreeFruit) -> None:
+    """fruit.csv: one line per fruit of the row, each once (map frame, m; seen_from front / back / both;
+    on_ground: lying under its tree, not in its count), written atomically."""
+    buf = io.StringIO()
+    w = csv.writer(buf, lineterminator="\n")
+    w.writerow(FRUIT_CSV_COLUMNS)
+    r = fruit.row
+    for i in range(len(r.positions)):
+        w.writerow([i, int(fruit.tree_id[i]), *(f"{v:.4f}" for v in r.positions[i]), f"{r.diameters_m[i]:.4f}",
+                    r.seen_from[i], int(fruit.on_ground[i])])
+    atomic_write_text(path, buf.getvalue())
+
+
 def write_tree_cloud(out: Path, labels: RowLabels, trees: list[ResultTree] | None = None) -> None:
     """trees.laz: the merged cloud with each point's tree and class (io.laz), and with `trees`,
     trees/<id>.png: each tree's points from the front and the side (docs/results.md)."""
     write_laz(out / TREES_LAZ, labels.points, labels.colors, labels.classification, labels.tree_id, labels.side)
+    if labels.fruit is not None:
+        write_fruit_csv(out / FRUIT_CSV, labels.fruit)
     for t in trees or []:
         mine = labels.tree_id == t.id
         if not mine.any():

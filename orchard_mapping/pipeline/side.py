@@ -14,6 +14,7 @@ import numpy as np
 
 from orchard_mapping.config import OrchardConfig
 from orchard_mapping.core.bundle_adjustment import BAResult, bundle_adjust_windowed, optimise_pose_graph
+from orchard_mapping.core.fruit import SideFruit
 from orchard_mapping.core.odometry import RGBDFrontEnd
 from orchard_mapping.core.sidemap import FrontEndResult, LoopClosure, SideGeometry, SideMap
 from orchard_mapping.core.sides import SideSplitter
@@ -21,6 +22,7 @@ from orchard_mapping.core.trunks import TrunkGround
 from orchard_mapping.core.types import CameraIntrinsics, RGBDFrame
 from orchard_mapping.errors import BagFormatError
 from orchard_mapping.io.bags import RGBDSequence
+from orchard_mapping.pipeline.fruit import FruitTap
 from orchard_mapping.pipeline.sides import BagKeyframeImages, KeyframeImages, Progress, Timings, frames_of, side_mask
 from orchard_mapping.pipeline.trunks import Detect, TrunkJob, TrunkWorker, fit_posts, model_trunks, with_trunks
 from orchard_mapping.pipeline.views import EarlyDetections, TrunkViews, add_column_views, fuse_keyframes
@@ -173,13 +175,21 @@ def finish_side_geometry(job: SideHandover, timings: Timings) -> tuple[SideMap, 
     colors = np.zeros((0, 3), np.uint8)
     stamps = np.array([k.stamp for k in fe.keyframes])
     trunk_job: TrunkJob | None = None
+    fruit: SideFruit | None = None
     if cfg.input.mode == "rgbd":
         t0 = time.perf_counter()
         frame_index = [k.frame_index for k in fe.keyframes]
         views = TrunkViews(cfg, stamps, ba.poses, intr, job.detections, frame_index)
-        fused = fuse_keyframes(job.images, frame_index, ba.poses, intr, cfg, views)
+        tap = FruitTap(side, ba.poses, intr, cfg.fruit) if cfg.fruit.enabled else None
+        fused = fuse_keyframes(job.images, frame_index, ba.poses, intr, cfg, views, tap)
         points, colors = fused.points, fused.colors
-        timings.add(f"fusion_{side}", time.perf_counter() - t0)
+        if tap is not None:
+            t1 = time.perf_counter()
+            fruit = tap.side_fruit()
+            timings.add(f"fruit_{side}", tap.seconds + time.perf_counter() - t1)
+            log.info("%s: %d fruit from %d views in %d keyframes", side, len(fruit.positions),
+                     len(tap.observations), len(tap.picks))
+        timings.add(f"fusion_{side}", time.perf_counter() - t0 - (tap.seconds if tap is not None else 0.0))
         if cfg.trunks.source != "off" and cfg.trunks.geometric != "off":
             t0 = time.perf_counter()
             n_columns = add_column_views(views, points, ba.poses, stamps, frame_index, job.images, intr, cfg)
@@ -200,6 +210,7 @@ def finish_side_geometry(job: SideHandover, timings: Timings) -> tuple[SideMap, 
         cloud_points=points, cloud_colors=colors,
         scale_free=cfg.input.mode == "rgb",
         odometry_poses=odometry,
+        fruit=fruit,
     )
     return side_map, trunk_job
 

@@ -16,6 +16,7 @@ from collections.abc import Iterator
 from dataclasses import dataclass, field, replace
 
 import numpy as np
+from scipy.spatial import cKDTree
 
 from orchard_mapping.config import OrchardConfig
 from orchard_mapping.core.geometry import move_with_keyframes
@@ -26,6 +27,7 @@ from orchard_mapping.core.trees import row_direction
 from orchard_mapping.core.trunks import TrunkLandmark, side_up_direction
 from orchard_mapping.io.laz import CLASS, SIDE_CODE
 from orchard_mapping.io.results import ResultTree
+from orchard_mapping.pipeline.fruit import TreeFruit, measure_fruit
 from orchard_mapping.pipeline.merge import MergeOutcome, map_poses, merge_to_trees, ray_in_map
 from orchard_mapping.pipeline.trunks import TrunkWorker
 
@@ -60,6 +62,7 @@ class RowLabels:
     tree_id: np.ndarray  # (N,) int32, the tree's id in trees.json, -1 none
     classification: np.ndarray  # (N,) uint8, io.laz.CLASS
     R_row_map: np.ndarray = field(default_factory=lambda: np.eye(3))  # (3, 3) rows: the row frame's x, y, z in map
+    fruit: TreeFruit | None = None  # the row's fruit, each once, with its tree (None: no fruit stage)
 
 
 def _tree_landmarks(trees: list[ResultTree], sides: dict[str, SideMap]) -> Iterator[tuple[int, str, TrunkLandmark]]:
@@ -198,7 +201,16 @@ def measure_trees(merged: MergeOutcome, sides: dict[str, SideMap], clouds: dict[
         out.append(replace(tree, height_m=height, canopy_volume_m3=volume, flags=tuple(flags), extra=extra,
                            per_side=per_side or tree.per_side))
     log.info("traits: %d trees in %.2f s (%s)", len(trees), time.perf_counter() - t0, cfg.traits.segmentation)
-    return out, RowLabels(pts, colors, side.astype(np.uint8), tree_id, cls, R)
+    fruit = None
+    if cfg.fruit.enabled:
+        out, fruit = measure_fruit(sides, poses, out, pts, tree_id, feet, normals, cfg.fruit)
+        if fruit is not None and len(fruit.row.positions):
+            # a fruit's points: within its radius (+1 cm of depth noise) of its centre
+            d, k = cKDTree(fruit.row.positions).query(pts, distance_upper_bound=0.5 * fruit.row.diameters_m.max() + 0.01)
+            hit = np.isfinite(d)
+            hit[hit] = d[hit] <= 0.5 * fruit.row.diameters_m[k[hit]] + 0.01
+            cls[hit] = CLASS["fruit"]
+    return out, RowLabels(pts, colors, side.astype(np.uint8), tree_id, cls, R, fruit)
 
 
 def _intervals(values: dict[str, float | None], flags: list[str], spread: dict[str, float]

@@ -6,7 +6,7 @@ from __future__ import annotations
 
 import logging
 import time
-from collections.abc import Iterator
+from collections.abc import Callable, Iterator
 from concurrent.futures import Future, ThreadPoolExecutor
 from dataclasses import asdict, replace
 
@@ -195,14 +195,19 @@ def add_column_views(views: TrunkViews, points: np.ndarray, poses: np.ndarray, s
 
 
 def fuse_keyframes(images: KeyframeImages, frame_index: list[int], poses: np.ndarray, intr, cfg: OrchardConfig,
-                   views: TrunkViews) -> FusionResult:
+                   views: TrunkViews, tap: Callable[[int, np.ndarray, np.ndarray], None] | None = None
+                   ) -> FusionResult:
     """TSDF fusion of the keyframes' depth (frame_index[k] is keyframe k's frame) with their optimised poses
     (k, 4, 4); the keyframes with a trunk detection go to `views` as fusion comes to them (cleaned as fusion moves
-    on, with trunks.view_depth "cleaned")."""
+    on, with trunks.view_depth "cleaned"). tap: also called with each keyframe (k, raw depth, colour) as fusion
+    reads it (the fruit stage: no second pass over the images)."""
     pose_of = dict(zip(frame_index, poses, strict=True))
+    k_of = {fi: k for k, fi in enumerate(frame_index)}
 
     def frames() -> Iterator[tuple[np.ndarray, np.ndarray, np.ndarray]]:
         for i, depth, color in images.frames(sorted(pose_of)):
+            if tap is not None:
+                tap(k_of[i], depth, color)
             yield depth, color, pose_of[i]
 
     return fuse_side(frames(), intr, keyframes=None, on_cleaned=views, select=views.select, **asdict(cfg.fusion))

@@ -10,6 +10,7 @@ import pytest
 
 from orchard_mapping.core.cylinder import Cylinder, CylinderFit, CylinderView
 from orchard_mapping.core.detection import Detection
+from orchard_mapping.core.fruit import SideFruit
 from orchard_mapping.core.ground import LocalGroundFit
 from orchard_mapping.core.posts import PostLandmark, PostObservation
 from orchard_mapping.core.sidemap import LoopClosure, Observations, SideMap
@@ -51,7 +52,8 @@ def _side_map(rng: np.random.Generator) -> SideMap:
         odometry_poses=poses.copy(), trunks=[lm],
         posts=[PostLandmark(0, np.array([1.0, 0.5, 2.0]), 0.049, [PostObservation(
             3, np.array([0.0, -1.0, 0.0]), np.array([0.2, 0.1, 2.0]), 0.047, 1.2, 800,
-            rng.normal(size=(20, 3)).astype(np.float32))])])
+            rng.normal(size=(20, 3)).astype(np.float32))])],
+        fruit=SideFruit("front", rng.normal(size=(5, 3)), rng.uniform(0.06, 0.09, 5), np.arange(3, 8)))
 
 
 def _same(a, b, at: str = "side_map") -> None:
@@ -113,3 +115,21 @@ def test_an_object_array_or_a_foreign_type_is_not_encoded():
         encode_side_map(dataclasses.replace(sm, landmarks=np.array([object()], dtype=object)))
     with pytest.raises(SideMapFormatError, match=r"side_map\.loops\[0\]: a dict cannot be encoded"):
         encode_side_map(dataclasses.replace(sm, loops=[{"kf_a": 0}]))
+
+
+def test_bytes_written_before_a_field_was_added_decode_with_its_default():
+    """A side map recorded before `fruit` existed (no such field in its tree) decodes with fruit None; a field
+    the type does not know is still refused."""
+    data = encode_side_map(_side_map(np.random.default_rng(0)))
+    with np.load(io.BytesIO(data)) as z:
+        entries = {k: z[k] for k in z.files}
+    tree = json.loads(entries["__tree__"].tobytes().decode())
+    del tree["fields"]["fruit"]
+    buf = io.BytesIO()
+    np.savez(buf, **{**entries, "__tree__": np.frombuffer(json.dumps(tree).encode(), np.uint8)})
+    assert decode_side_map(buf.getvalue()).fruit is None
+    tree["fields"]["colour_of_sky"] = 1
+    buf = io.BytesIO()
+    np.savez(buf, **{**entries, "__tree__": np.frombuffer(json.dumps(tree).encode(), np.uint8)})
+    with pytest.raises(SideMapFormatError, match="colour_of_sky"):
+        decode_side_map(buf.getvalue())

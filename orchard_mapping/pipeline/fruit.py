@@ -1,0 +1,160 @@
+"""The fruit stage: each side's fruit as fusion reads its keyframes, then both sides' fruit once, per tree.
+
+Per side (`FruitTap`, called by fusion with each keyframe's raw depth and colour, so no extra pass over the
+bag): the keyframes fruit.every_m apart are segmented (core.fruit_pixels) and their fruit placed
+(core.fruit.fruit_observations); when the side ends its fruit are linked (fruit_of_side) and travel in the
+side map. After the merge (`measure_fruit`): the back side's fruit carried into map with its keyframes, both
+sides associated (associate_sides), each fruit given the tree whose labelled points hold it, fruit lying on
+the ground set apart.
+"""
+
+from __future__ import annotations
+
+import logging
+import time
+from dataclasses import dataclass, replace
+from functools import lru_cache
+
+import numpy as np
+from scipy.spatial import cKDTree
+
+from orchard_mapping.core.fruit import (
+    FruitObservation,
+    FruitParams,
+    RowFruit,
+    SideFruit,
+    associate_sides,
+    fruit_observations,
+    fruit_of_side,
+)
+from orchard_mapping.core.geometry import move_with_keyframes
+from orchard_mapping.core.sidemap import SideMap
+from orchard_mapping.core.types import CameraIntrinsics
+from orchard_mapping.io.results import ResultTree
+
+__all__ = ["FruitTap", "TreeFruit", "measure_fruit", "FRUIT_ON_GROUND", "NO_TWO_SIDE_COUNT"]
+
+log = logging.getLogger(__name__)
+
+FRUIT_ON_GROUND = "fruit_on_ground"  # flag: fruit lying under the tree were left out of its count
+NO_TWO_SIDE_COUNT = "no_two_side_fruit_count"  # flag: one side's fruit only (the other side missing or without)
+# m: a fruit is its tree's when that tree's labelled points lie within its radius + this of its centre
+FRUIT_TREE_MARGIN_M = 0.05
+
+
+@lru_cache(maxsize=4)
+def _pixel_model(path: str):
+    from orchard_mapping.core.detection import resolve_model_path
+    from orchard_mapping.core.fruit_pixels import load_model
+
+    return load_model(resolve_model_path(path))
+
+
+def keyframes_every(poses: np.ndarray, every_m: float) -> list[int]:
+    """Keyframes (indices) at least every_m (m) of camera path apart, the first one included."""
+    picks, last = [], None
+    for k, T in enumerate(poses):
+        if last is None or np.linalg.norm(T[:3, 3] - last) >= every_m - 1e-6:
+            picks.append(k)
+            last = T[:3, 3]
+    return picks
+
+
+class FruitTap:
+    """Fusion's view of a side's keyframes: the picked ones are searched for fruit (call with keyframe k, its
+    depth (H, W) m and colour (H, W, 3)); `side_fruit()` links what was seen."""
+
+    def __init__(self, side: str, poses: np.ndarray, intr: CameraIntrinsics, params: FruitParams) -> None:
+        self.side, self.poses, self.intr, self.params = side, poses, intr, params
+        self.picks = set(keyframes_every(poses, params.every_m))
+        self.observations: list[FruitObservation] = []
+        self.seconds = 0.0
+        self._model = _pixel_model(params.model)
+
+    def __call__(self, k: int, depth: np.ndarray, color: np.ndarray) -> None:
+        if k not in self.picks:
+            return
+        from orchard_mapping.core.fruit_pixels import segment_fruit
+
+        t0 = time.perf_counter()
+        inst = segment_fruit(color, self._model).instances
+        self.observations += fruit_observations(inst, depth, self.poses[k], self.intr, self.params, keyframe=k)
+        self.seconds += time.perf_counter() - t0
+
+    def side_fruit(self) -> SideFruit:
+        return fruit_of_side(self.side, self.observations, self.params)
+
+
+@dataclass(frozen=True)
+class TreeFruit:
+    """The row's fruit after the merge: each fruit once, with its tree."""
+
+    row: RowFruit  # in map
+    tree_id: np.ndarray  # (F,) int, the tree (trees.json id) each fruit hangs in, -1 none
+    on_ground: np.ndarray  # (F,) bool: under a tree, on the ground (not counted)
+
+
+def _in_map(sm: SideMap, poses_map: np.ndarray) -> SideFruit:
+    f = sm.fruit
+    return replace(f, positions=move_with_keyframes(f.positions, sm.keyframe_poses, poses_map))
+
+
+def measure_fruit(sides: dict[str, SideMap], poses: dict[str, np.ndarray], trees: list[ResultTree],
+                  points: np.ndarray, point_tree: np.ndarray, grounds: np.ndarray, normals: np.ndarray,
+                  params: FruitParams) -> tuple[list[ResultTree], TreeFruit | None]:
+    """The trees with their fruit counted (front, back and both sides once), and the row's fruit. poses: each
+    side's keyframes in map; points (N, 3) map with their tree ids (N,); per tree its local ground point and
+    unit-up normal in map (T, 3). None (trees unchanged) when no side carries fruit."""
+    have = {s: sm for s, sm in sides.items() if sm.fruit is not None}
+    if not have:
+        return trees, None
+    empty = SideFruit("", np.zeros((0, 3)), np.zeros(0), np.zeros(0, int))
+    f = _in_map(have["front"], poses["front"]) if "front" in have else replace(empty, side="front")
+    b = _in_map(have["back"], poses["back"]) if "back" in have else replace(empty, side="back")
+    row = associate_sides(f, b, params)
+    ids = np.array([t.id for t in trees], int)
+    tree_of = np.full(len(row.positions), -1, int)
+    if len(row.positions) and len(points):
+        labelled = point_tree >= 0
+        kd = cKDTree(points[labelled])
+        lab = point_tree[labelled]
+        for i, (p, d) in enumerate(zip(row.positions, row.diameters_m, strict=True)):
+            near = kd.query_ball_point(p, 0.5 * d + FRUIT_TREE_MARGIN_M)
+            if near:
+                vals, counts = np.unique(lab[near], return_counts=True)
+                tree_of[i] = int(vals[np.argmax(counts)])
+    # a fruit without a crown round it: its nearest trunk's tree, the ground test says if it lies there
+    feet = np.array([t.position for t in trees], float).reshape(-1, 3)
+    if len(feet):
+        lost = tree_of < 0
+        if lost.any():
+            tree_of[lost] = ids[np.argmin(np.linalg.norm(row.positions[lost, None, :2] - feet[None, :, :2], axis=2),
+                                          axis=1)]
+    k_of = {tid: k for k, tid in enumerate(ids.tolist())}
+    on_ground = np.zeros(len(row.positions), bool)
+    for i, tid in enumerate(tree_of.tolist()):
+        if tid in k_of:
+            k = k_of[tid]
+            h = float((row.positions[i] - grounds[k]) @ normals[k])
+            on_ground[i] = h - 0.5 * row.diameters_m[i] < params.ground_margin_m
+    one_side = not (len(f.positions) and len(b.positions))
+    out = []
+    for t in trees:
+        mine = (tree_of == t.id) & ~on_ground
+        seen = row.seen_from[mine]
+        flags = list(t.flags)
+        if np.any((tree_of == t.id) & on_ground):
+            flags.append(FRUIT_ON_GROUND)
+        if one_side:
+            flags.append(NO_TWO_SIDE_COUNT)
+        extra = {**t.extra,
+                 "fruit_count_front": int(np.sum((seen == "front") | (seen == "both"))),
+                 "fruit_count_back": int(np.sum((seen == "back") | (seen == "both"))),
+                 "fruit_seen_from_both": int(np.sum(seen == "both")),
+                 "fruit_on_ground": int(np.sum((tree_of == t.id) & on_ground)),
+                 "fruit_diameters_m": [round(float(d), 4) for d in row.diameters_m[mine]]}
+        out.append(replace(t, fruit_count=int(mine.sum()), fruit_positions=row.positions[mine],
+                           flags=tuple(dict.fromkeys(flags)), extra=extra))
+    log.info("fruit: %d in the row (%d seen from both sides), %d on the ground", int((~on_ground).sum()),
+             int(np.sum(row.seen_from == "both")), int(on_ground.sum()))
+    return out, TreeFruit(row, tree_of, on_ground)
