@@ -20,6 +20,7 @@ Frames: odom_<side> for a side's fruit, map after the merge; metres.
 from __future__ import annotations
 
 from dataclasses import dataclass
+from typing import Literal
 
 import cv2
 import numpy as np
@@ -59,6 +60,10 @@ class FruitParams:
     """config `fruit` section: where fruit are looked for, and how they are placed, linked and matched."""
 
     enabled: bool = False  # off: no fruit stage (fruit_count stays empty)
+    # model: the pixel model below | masks: fruit instances of masks_dir/<side>/ (the simulator's, or a user's
+    # annotations: measures the 3D stage alone)
+    source: Literal["model", "masks"] = "model"
+    masks_dir: str = ""
     # the pixel model (core.fruit_pixels; a relative path is looked up from the working directory, then
     # beside the package)
     model: str = "models/fruit_colour_gmm.json"
@@ -85,6 +90,8 @@ class FruitParams:
                 raise FruitError(f"fruit.{name} must be > 0, got {getattr(self, name)!r}")
         if not self.max_radius_m > self.min_radius_m:
             raise FruitError(f"fruit.max_radius_m ({self.max_radius_m}) must exceed min_radius_m ({self.min_radius_m})")
+        if self.enabled and self.source == "masks" and not self.masks_dir:
+            raise FruitError("fruit.source is 'masks' but fruit.masks_dir is empty")
         if self.min_views < 1 or self.min_pixels < 1:
             raise FruitError(f"fruit.min_views and fruit.min_pixels must be >= 1, got {self.min_views}, "
                              f"{self.min_pixels}")

@@ -57,14 +57,28 @@ class MaskFolderDetector:
         self.frames = np.asarray(frames, int)
         self.tol = stamp_tol_s
 
-    def detect_at(self, stamp: float) -> list[Detection]:
+    def mask_at(self, stamp: float) -> np.ndarray | None:
+        """The instance mask (H, W) uint16 of the frame at `stamp` (within the tolerance), None if none."""
         if not len(self.stamps):
-            return []
+            return None
         j = int(np.argmin(np.abs(self.stamps - stamp)))  # the mask nearest in time
         if abs(self.stamps[j] - stamp) > self.tol:
-            return []
+            return None
         path = self.dir / f"{self.frames[j]:06d}.png"
         m = cv2.imread(str(path), cv2.IMREAD_UNCHANGED)
         if m is None or m.ndim != 2:
-            raise DetectorError(f"trunk masks: {path} is missing or not a single-channel 16-bit PNG")
-        return detections_from_instance_mask(m)
+            raise DetectorError(f"instance masks: {path} is missing or not a single-channel 16-bit PNG")
+        return m
+
+    def detect_at(self, stamp: float) -> list[Detection]:
+        m = self.mask_at(stamp)
+        return [] if m is None else detections_from_instance_mask(m)
+
+    def fruit_at(self, stamp: float) -> np.ndarray | None:
+        """The fruit instances (H, W) int32 (0 none, k + 1 fruit k) of the frame at `stamp`, None if no mask."""
+        m = self.mask_at(stamp)
+        if m is None:
+            return None
+        m = m.astype(np.int64)
+        fruit = (m >= MASK_FRUIT) & (m < MASK_POST)
+        return np.where(fruit, m - MASK_FRUIT + 1, 0).astype(np.int32)

@@ -64,21 +64,33 @@ class FruitTap:
     """Fusion's view of a side's keyframes: the picked ones are searched for fruit (call with keyframe k, its
     depth (H, W) m and colour (H, W, 3)); `side_fruit()` links what was seen."""
 
-    def __init__(self, side: str, poses: np.ndarray, intr: CameraIntrinsics, params: FruitParams) -> None:
-        self.side, self.poses, self.intr, self.params = side, poses, intr, params
+    def __init__(self, side: str, stamps: np.ndarray, poses: np.ndarray, intr: CameraIntrinsics,
+                 params: FruitParams) -> None:
+        self.side, self.stamps, self.poses, self.intr, self.params = side, stamps, poses, intr, params
         self.picks = set(keyframes_every(poses, params.every_m))
         self.observations: list[FruitObservation] = []
         self.seconds = 0.0
-        self._model = _pixel_model(params.model)
+        if params.source == "masks":
+            from orchard_mapping.io.masks import MaskFolderDetector
+
+            self._masks = MaskFolderDetector(params.masks_dir, side)
+        else:
+            self._model = _pixel_model(params.model)
+
+    def _instances(self, k: int, color: np.ndarray) -> np.ndarray | None:
+        if self.params.source == "masks":
+            return self._masks.fruit_at(float(self.stamps[k]))
+        from orchard_mapping.core.fruit_pixels import segment_fruit
+
+        return segment_fruit(color, self._model).instances
 
     def __call__(self, k: int, depth: np.ndarray, color: np.ndarray) -> None:
         if k not in self.picks:
             return
-        from orchard_mapping.core.fruit_pixels import segment_fruit
-
         t0 = time.perf_counter()
-        inst = segment_fruit(color, self._model).instances
-        self.observations += fruit_observations(inst, depth, self.poses[k], self.intr, self.params, keyframe=k)
+        inst = self._instances(k, color)
+        if inst is not None:
+            self.observations += fruit_observations(inst, depth, self.poses[k], self.intr, self.params, keyframe=k)
         self.seconds += time.perf_counter() - t0
 
     def side_fruit(self) -> SideFruit:

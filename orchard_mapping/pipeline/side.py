@@ -180,7 +180,7 @@ def finish_side_geometry(job: SideHandover, timings: Timings) -> tuple[SideMap, 
         t0 = time.perf_counter()
         frame_index = [k.frame_index for k in fe.keyframes]
         views = TrunkViews(cfg, stamps, ba.poses, intr, job.detections, frame_index)
-        tap = FruitTap(side, ba.poses, intr, cfg.fruit) if cfg.fruit.enabled else None
+        tap = FruitTap(side, stamps, ba.poses, intr, cfg.fruit) if cfg.fruit.enabled else None
         fused = fuse_keyframes(job.images, frame_index, ba.poses, intr, cfg, views, tap)
         points, colors = fused.points, fused.colors
         if tap is not None:
