@@ -32,7 +32,7 @@ from orchard_mapping.sim.scenario import load_scenario
 from orchard_mapping.sim.simulate import simulate
 
 
-def _sides(row: Path, scenario: str, seed: int, trees: int, reuse: bool) -> tuple[Path, dict]:
+def side_maps(row: Path, scenario: str, seed: int, trees: int, reuse: bool) -> tuple[Path, dict]:
     sim = row / "sim"
     if not (reuse and (sim / "ground_truth.json").is_file()):
         simulate(load_scenario(scenario, {"row.n_trees": trees}), seed, sim)
@@ -76,7 +76,7 @@ def main() -> None:
     print("|---|---|---|---|---|---|---|---|---|")
     for spec in a.rows:
         scenario, seed = spec.split(":")
-        sim, maps = _sides(a.workdir / f"{scenario}_{seed}_{a.trees}trees", scenario, int(seed), a.trees, a.reuse)
+        sim, maps = side_maps(a.workdir / f"{scenario}_{seed}_{a.trees}trees", scenario, int(seed), a.trees, a.reuse)
         cfg = load_config()
         merged, clouds, trees = merge_to_trees(maps, cfg)
         for method in ("cutting_planes", "shrink_and_expand", "one_side_doubled"):

@@ -32,7 +32,7 @@ from orchard_mapping.core.sidemap import SideMap
 from orchard_mapping.core.types import CameraIntrinsics
 from orchard_mapping.io.results import ResultTree
 
-__all__ = ["FruitTap", "TreeFruit", "measure_fruit", "FRUIT_ON_GROUND", "NO_TWO_SIDE_COUNT"]
+__all__ = ["FruitTap", "TreeFruit", "measure_fruit", "side_fruit_in_map", "FRUIT_ON_GROUND", "NO_TWO_SIDE_COUNT"]
 
 log = logging.getLogger(__name__)
 
@@ -106,7 +106,8 @@ class TreeFruit:
     on_ground: np.ndarray  # (F,) bool: under a tree, on the ground (not counted)
 
 
-def _in_map(sm: SideMap, poses_map: np.ndarray) -> SideFruit:
+def side_fruit_in_map(sm: SideMap, poses_map: np.ndarray) -> SideFruit:
+    """The side's fruit carried into map with its keyframes (poses_map (K, 4, 4)), as its cloud is."""
     f = sm.fruit
     return replace(f, positions=move_with_keyframes(f.positions, sm.keyframe_poses, poses_map))
 
@@ -121,8 +122,8 @@ def measure_fruit(sides: dict[str, SideMap], poses: dict[str, np.ndarray], trees
     if not have:
         return trees, None
     empty = SideFruit("", np.zeros((0, 3)), np.zeros(0), np.zeros(0, int))
-    f = _in_map(have["front"], poses["front"]) if "front" in have else replace(empty, side="front")
-    b = _in_map(have["back"], poses["back"]) if "back" in have else replace(empty, side="back")
+    f = side_fruit_in_map(have["front"], poses["front"]) if "front" in have else replace(empty, side="front")
+    b = side_fruit_in_map(have["back"], poses["back"]) if "back" in have else replace(empty, side="back")
     row = associate_sides(f, b, params)
     ids = np.array([t.id for t in trees], int)
     tree_of = np.full(len(row.positions), -1, int)
