@@ -19,7 +19,6 @@ from __future__ import annotations
 import argparse
 import dataclasses
 import tempfile
-import time
 from pathlib import Path
 
 import numpy as np
@@ -29,9 +28,9 @@ from orchard_mapping.core.fruit import inclusion_exclusion_count
 from orchard_mapping.eval.evaluate import evaluate_result
 from orchard_mapping.eval.ground_truth import load_ground_truth
 from orchard_mapping.io.results import portable_json, write_trees
-from orchard_mapping.pipeline.fruit import FruitTap, side_fruit_in_map
+from orchard_mapping.pipeline.fruit import add_fruit, side_fruit_in_map
 from orchard_mapping.pipeline.merge import map_poses, merge_to_trees
-from orchard_mapping.pipeline.sides import BagKeyframeImages, open_sides
+from orchard_mapping.pipeline.sides import open_sides
 from orchard_mapping.pipeline.traits import measure_trees
 from traits_rows import side_maps  # benchmarks/ is the script's folder
 
@@ -42,21 +41,9 @@ def _with_fruit(sim: Path, maps: dict, cfg) -> tuple[dict, float]:
     seqs = open_sides(sim / "front", sim / "back", cfg)
     out, secs = {}, 0.0
     for side, sm in maps.items():
-        seq = seqs[side]
-        index = np.searchsorted(seq.stamps, sm.keyframe_stamps - 1e-6)  # each keyframe's frame in its bag
-        tap = FruitTap(side, sm.keyframe_stamps, sm.keyframe_poses, sm.intrinsics, cfg.fruit)
-        k_of = {int(fi): k for k, fi in enumerate(index)}
-        t0 = time.perf_counter()
-        for fi, depth, color in BagKeyframeImages(seq, side, False).frames(sorted(tap_frames(tap, index))):
-            tap(k_of[fi], depth, color)
-        fruit = tap.side_fruit()
-        secs += time.perf_counter() - t0
-        out[side] = dataclasses.replace(sm, fruit=fruit)
+        out[side], s = add_fruit(sm, seqs[side], cfg.fruit)
+        secs += s
     return out, secs
-
-
-def tap_frames(tap: FruitTap, index: np.ndarray) -> list[int]:
-    return [int(index[k]) for k in sorted(tap.picks)]
 
 
 def main() -> None:

@@ -30,9 +30,11 @@ from orchard_mapping.core.fruit import (
 from orchard_mapping.core.geometry import move_with_keyframes
 from orchard_mapping.core.sidemap import SideMap
 from orchard_mapping.core.types import CameraIntrinsics
+from orchard_mapping.io.bags import RGBDSequence
 from orchard_mapping.io.results import ResultTree
+from orchard_mapping.pipeline.sides import BagKeyframeImages
 
-__all__ = ["FruitTap", "TreeFruit", "measure_fruit", "side_fruit_in_map", "FRUIT_ON_GROUND", "NO_TWO_SIDE_COUNT"]
+__all__ = ["FruitTap", "TreeFruit", "add_fruit", "measure_fruit", "side_fruit_in_map", "FRUIT_ON_GROUND", "NO_TWO_SIDE_COUNT"]
 
 log = logging.getLogger(__name__)
 
@@ -95,6 +97,18 @@ class FruitTap:
 
     def side_fruit(self) -> SideFruit:
         return fruit_of_side(self.side, self.observations, self.params)
+
+
+def add_fruit(sm: SideMap, seq: RGBDSequence, params: FruitParams, labelled: bool = False) -> tuple[SideMap, float]:
+    """The side map with its fruit found anew on its keyframes' images read from the side's bag `seq` (a side
+    reconstructed without the fruit stage, or with other fruit settings), and the seconds it took."""
+    index = np.searchsorted(seq.stamps, np.asarray(sm.keyframe_stamps) - 1e-6)  # (K,) each keyframe's frame
+    tap = FruitTap(sm.side, sm.keyframe_stamps, sm.keyframe_poses, sm.intrinsics, params)
+    k_of = {int(index[k]): k for k in tap.picks}
+    t0 = time.perf_counter()
+    for fi, depth, color in BagKeyframeImages(seq, sm.side, labelled).frames(sorted(k_of)):
+        tap(k_of[fi], depth, color)
+    return replace(sm, fruit=tap.side_fruit()), time.perf_counter() - t0
 
 
 @dataclass(frozen=True)

@@ -9,6 +9,7 @@ are measured by benchmarks/single_side.py.
 
 from __future__ import annotations
 
+import dataclasses
 import json
 import shutil
 from collections.abc import Iterator
@@ -27,13 +28,16 @@ from orchard_mapping.core.types import StampedTrajectory
 from orchard_mapping.errors import AlignmentError, BagError, BagFormatError
 from orchard_mapping.eval import evaluate_result
 from orchard_mapping.eval.ground_truth import load_ground_truth
-from orchard_mapping.eval.metrics import TrajectoryError, trajectory_error
+from orchard_mapping.eval.metrics import TrajectoryError, double_count, trajectory_error
 from orchard_mapping.io.bag_writer import BagWriter
 from orchard_mapping.io.bags import read_rgbd
 from orchard_mapping.io.landmarks import read_trunks
 from orchard_mapping.io.results import read_trees, read_tum
 from orchard_mapping.io.sidemap_codec import decode_side_map, encode_side_map
 from orchard_mapping.pipeline import SideSession, SpooledKeyframeImages, Timings, merge_sides, reconstruct_side, run
+from orchard_mapping.pipeline.fruit import add_fruit
+from orchard_mapping.pipeline.merge import merge_to_trees
+from orchard_mapping.pipeline.traits import measure_trees
 from orchard_mapping.ros.finisher import finish_in_child
 from orchard_mapping.sim.scenario import load_scenario
 from orchard_mapping.sim.simulate import simulate
@@ -560,3 +564,42 @@ def test_each_tree_is_measured_in_the_merged_map(reconstructed_model, accuracy):
         assert np.sum(mine == CLASS["canopy"]) > 1000 and np.sum(mine == CLASS["trunk"]) > 50, t.id
     assert np.sum(laz["classification"] == CLASS["ground"]) > 10_000
     assert sorted(p.name for p in (out / "trees").iterdir()) == [f"{t.id}.png" for t in trees]  # the figures
+
+
+def test_fruit_of_both_sides_are_counted_once_and_placed(reconstructed_model, accuracy):
+    """The fruit stage's geometry on the 2-tree row (fruit.source masks: the simulator's fruit masks stand for
+    the pixel model, core.fruit_pixels, measured in its own tests): each side's fruit from its keyframes, both
+    sides merged and counted once per tree. Goals of the yield issue: row count within 3 % of the fruit visible
+    from either side, at most 2 duplicates per 100 fruit seen from both sides, position error <= 1.5 cm median,
+    diameter MAE <= 5 mm; measured on a 3-tree row: -1.2 %, 1.7, 4.6 mm, 2.2 mm. Two trees' ~60 fruit make the
+    count bound one fruit coarser: 5 %."""
+    sim, _ = reconstructed_model
+    base = load_config()
+    cfg = base.model_copy(update={"fruit": dataclasses.replace(base.fruit, enabled=True, source="masks",
+                                                               masks_dir=str(sim / "masks"))})
+    sides = {s: add_fruit(_MODEL_SIDES[s], read_rgbd(sim / s), cfg.fruit)[0] for s in ("front", "back")}
+    merged, clouds, trees = merge_to_trees(sides, cfg)
+    measured, labels = measure_trees(merged, sides, clouds, trees, cfg)
+    gt = load_ground_truth(sim / "ground_truth.json")
+    visible = sum(t.fruit_visible["either"] for t in gt.trees)
+    with_fruit = [t for t in measured if t.fruit_count is not None]
+    assert len(with_fruit) == len(measured) == 2
+    est = sum(t.fruit_count for t in with_fruit) + sum(t.extra["fruit_on_ground"] for t in with_fruit)
+    accuracy.at_most("fruit count error vs visible, %", 100 * abs(est - visible) / visible, 5.0)
+    for t in with_fruit:  # each side's own count is below the two-side one: the association adds, never doubles
+        assert max(t.extra["fruit_count_front"], t.extra["fruit_count_back"]) <= t.fruit_count
+        assert t.extra["fruit_count_front"] + t.extra["fruit_count_back"] - t.extra["fruit_seen_from_both"] == \
+            t.fruit_count
+    T = np.linalg.inv(gt.sides["front"].T_world_odom)
+    true_xyz = np.concatenate([t.fruit_positions for t in gt.trees]) @ T[:3, :3].T + T[:3, 3]
+    dc = double_count(np.concatenate([t.fruit_positions for t in with_fruit]), true_xyz,
+                      np.concatenate([t.fruit_radii for t in gt.trees]),
+                      est_diameter_m=np.concatenate([t.extra["fruit_diameters_m"] for t in with_fruit]),
+                      true_seen_from_both=sum(t.fruit_visible["both"] for t in gt.trees))
+    # ~30 fruit seen from both sides: one duplicate is 3 %, so the bound is one duplicate (the goal's 2 % is
+    # over a 10-tree row: benchmarks/fruit_rows.py)
+    accuracy.at_most("fruit counted twice per 100 seen from both sides", dc.per_both_percent, 4.0)
+    accuracy.at_most("fruit position error median, mm", dc.position_error_median_mm, 15.0)
+    accuracy.at_most("fruit diameter MAE, mm", dc.diameter_mae_mm, 5.0)
+    assert dc.false <= 0.05 * dc.estimated
+    assert np.sum(labels.classification == 66) > 100  # fruit points classed for trees.laz
