@@ -58,7 +58,8 @@ def _score(truth: Path, trees: list, labels) -> dict:
             "volume_mape_pct": t["canopy_volume_mape_percent"], "volume_bias_pct": t["canopy_volume_bias_percent"],
             "seg_accuracy_pct": None if sg.get("accuracy") is None else 100 * sg["accuracy"],
             "seg_touching_pct": None if sg.get("accuracy_near_neighbour") is None
-            else 100 * sg["accuracy_near_neighbour"]}
+            else 100 * sg["accuracy_near_neighbour"],
+            "interval_coverage": {k: v["coverage"] for k, v in (t.get("interval_coverage") or {}).items()}}
 
 
 def main() -> None:
