@@ -219,7 +219,8 @@ def _none(v: float) -> float | None:
 
 def trees_to_msg(trees: list[ResultTree], frame_id: str, stamp: float):
     """TreeTraitsArray of result trees (frame map): a trait not measured is NaN (counts -1), as the message says.
-    Every value of trees.json travels except fruit positions and extra keys."""
+    Every value of trees.json travels except fruit positions and extra keys (the fruit counted from each side
+    travel)."""
     from orchard_mapping_msgs.msg import TreeTraits, TreeTraitsArray
 
     out = TreeTraitsArray()
@@ -232,7 +233,9 @@ def trees_to_msg(trees: list[ResultTree], frame_id: str, stamp: float):
         m.trunk_diameter, m.height, m.canopy_volume = (_nan(t.trunk_diameter_m), _nan(t.height_m),
                                                        _nan(t.canopy_volume_m3))
         m.fruit_count = -1 if t.fruit_count is None else int(t.fruit_count)
-        m.fruit_count_front = m.fruit_count_back = -1
+        for side in ("front", "back"):
+            n = t.extra.get(f"fruit_count_{side}")
+            setattr(m, f"fruit_count_{side}", -1 if n is None else int(n))
         per = t.per_side or {}
         for side in ("front", "back"):
             own = per.get(side) or {}
@@ -253,5 +256,7 @@ def trees_from_msg(msg) -> tuple[str, float, list[ResultTree]]:
         trees.append(ResultTree(int(m.tree_id), (float(m.position.x), float(m.position.y), float(m.position.z)),
                                 _none(m.trunk_diameter), _none(m.height), _none(m.canopy_volume),
                                 None if m.fruit_count < 0 else int(m.fruit_count), per_side=per or None,
-                                flags=tuple(str(f) for f in m.flags)))
+                                flags=tuple(str(f) for f in m.flags),
+                                extra={f"fruit_count_{side}": int(getattr(m, f"fruit_count_{side}"))
+                                       for side in ("front", "back") if getattr(m, f"fruit_count_{side}") >= 0}))
     return msg.header.frame_id, msg.header.stamp.sec + 1e-9 * msg.header.stamp.nanosec, trees

@@ -4,11 +4,11 @@ In:  /orchard/merged/trees  TreeTraitsArray from the side merger (latched): each
      its two-side trunk diameter and each side's own, flags
 Out (latched, frame map):
      /orchard/trees          orchard_mapping_msgs/TreeTraitsArray: every tree with the traits measured so far
-                             (trunk diameter, height, canopy volume; fruit count stays -1 until it is
-                             measured, as in trees.json where it is null)
+                             (trunk diameter, height, canopy volume, fruit counts with the fruit
+                             stage; -1 where not measured, as in trees.json where it is null)
      /orchard/tree_markers   visualization_msgs/MarkerArray: a cylinder per trunk (its diameter, 0.6 m
                              high, green when seen from both sides, orange from one), a text label
-                             (tree id, diameter in mm, height, canopy volume) above it and, where the
+                             (tree id, diameter in mm, height, canopy volume, fruit) above it and, where the
                              height is measured, a translucent box for the crown (namespace `crowns`)
 With `out_dir` set, trees.json and trees.csv are written there as `orchard-map run` writes them (each
 file atomically; the trees are validated before anything is written). With `exit_after_reports`
@@ -77,6 +77,8 @@ def tree_markers(trees: list[ResultTree], frame_id: str, stamp: float) -> Marker
             label.text += f", {t.height_m:.2f} m" + (f", {t.canopy_volume_m3:.2f} m3" if t.canopy_volume_m3 else "")
             label.pose.position.y = t.position[1] - t.height_m - 0.15  # above the crown
             out.markers.append(_crown_box(t, frame_id, stamp))
+        if t.fruit_count is not None:
+            label.text += f", {t.fruit_count} fruit"
     return out
 
 

@@ -73,7 +73,8 @@ def test_trees_round_trip_through_tree_traits_array():
                                                           "back": {"trunk_id": 7, "diameter_m": None}}),
         ResultTree(1, (3.5, -0.4, 2.3), None, flags=("seen_from_back_only", "trunk_hidden_at_diameter_height"),
                    per_side={"back": {"trunk_id": 8, "diameter_m": None}}),
-        ResultTree(2, (5.0, -0.45, 2.2), 0.07, height_m=2.4, canopy_volume_m3=1.5, fruit_count=12),
+        ResultTree(2, (5.0, -0.45, 2.2), 0.07, height_m=2.4, canopy_volume_m3=1.5, fruit_count=12,
+                   extra={"fruit_count_front": 8, "fruit_count_back": 7}),
     ]
     msg = deserialize_message(serialize_message(trees_to_msg(trees, "map", 12.5)), TreeTraitsArray)
     frame, stamp, back = trees_from_msg(msg)
@@ -81,12 +82,14 @@ def test_trees_round_trip_through_tree_traits_array():
     assert [t.to_json() for t in back] == [t.to_json() for t in trees]
     assert msg.trees[1].trunk_id_front == -1 and math.isnan(msg.trees[1].trunk_diameter)
     assert msg.trees[0].fruit_count == -1 and msg.trees[2].fruit_count == 12
+    assert msg.trees[0].fruit_count_front == -1 and (msg.trees[2].fruit_count_front, msg.trees[2].fruit_count_back) == (
+        8, 7)
     markers = tree_markers(trees, "map", 12.5).markers
     assert len(markers) == 1 + 2 * len(trees) + 1 and markers[2].text == "tree 0: 81 mm"
     crown = markers[-1]  # tree 2: height 2.4 m, 1.5 m3 (no clear trunk given: from its foot)
     assert crown.ns == "crowns" and crown.scale.y == pytest.approx(2.4)
     assert crown.scale.x * crown.scale.y * crown.scale.z == pytest.approx(1.5)
-    assert markers[-2].text == "tree 2: 70 mm, 2.40 m, 1.50 m3"
+    assert markers[-2].text == "tree 2: 70 mm, 2.40 m, 1.50 m3, 12 fruit"
     assert markers[3].color.g < markers[1].color.g  # seen from one side: orange, from both: green
 
 
