@@ -38,6 +38,7 @@ from orchard_mapping.errors import (
     MissingTopicError,
 )
 from orchard_mapping.io.pairing import pair_stamps
+from orchard_mapping.io.salvage import salvaged_copy
 from orchard_mapping.io.typesys import typestore
 
 __all__ = [
@@ -73,6 +74,7 @@ COLOR_ENCODINGS: dict[str, tuple[int, str]] = {
 DEPTH_ENCODINGS: dict[str, tuple[int, float]] = {"16UC1": (2, 1000.0), "mono16": (2, 1000.0), "32FC1": (4, 1.0)}
 
 _READ_ERRORS = (AnyReaderError, Reader1Error, Reader2Error, OSError, EOFError, struct.error)
+MCAP_MAGIC = b"\x89MCAP0\r\n"  # an MCAP file starts and, once closed, ends with it
 _DESER_ERRORS = (AnyReaderError, ValueError, IndexError, struct.error)
 
 
@@ -87,6 +89,18 @@ def header_ns(header: Any) -> int:
 # --------------------------------------------------------------------------- reading helpers
 
 
+def _cut_mcap(path: Path) -> Path | None:
+    """The MCAP file of a bag (a bare .mcap, or a rosbag2 folder holding one) whose end is missing, else None."""
+    files = [path] if path.is_file() else sorted(path.glob("*.mcap")) if path.is_dir() else []
+    if len(files) != 1 or files[0].suffix != ".mcap" or files[0].stat().st_size < 16:
+        return None
+    with open(files[0], "rb") as f:
+        head = f.read(8)
+        f.seek(-8, 2)
+        tail = f.read(8)
+    return files[0] if head == MCAP_MAGIC and tail != MCAP_MAGIC else None
+
+
 @contextlib.contextmanager
 def _open_reader(path: Path) -> Iterator[AnyReader]:
     """AnyReader on a rosbag2 folder or a bare storage file (.mcap, .db3; rosbag1 .bag)."""
@@ -96,7 +110,12 @@ def _open_reader(path: Path) -> Iterator[AnyReader]:
         reader.open()
     except _READ_ERRORS as err:
         what = "no such file or folder" if not path.exists() else "not a readable bag"
-        raise BagReadError(f"{what}: {err}", bag=bag) from err
+        cut = _cut_mcap(path)
+        if cut is None:
+            raise BagReadError(f"{what}: {err}", bag=bag) from err
+        # a recording cut short: its whole messages, from a closed copy (io.salvage)
+        reader = AnyReader([salvaged_copy(cut).path], default_typestore=typestore())
+        reader.open()
     try:
         yield reader
     finally:
