@@ -1,0 +1,174 @@
+"""Benchmark: fruit pixels and fruit instances (orchard_mapping.core.fruit_pixels) on held-out simulated frames,
+and on real photographs where a folder of them is given.
+
+Simulated: the held-out seeds of orchard_mapping.train.fruit_pixels (HELDOUT_SEEDS, never used for training or
+for a choice), 2-tree rows, `--frames` frames per side spread over both sweeps, in each colour mix (red_fraction
+1.0, 0.0, 0.6) and two looks: `standard` (the standard scenario's colours and light) and `randomised` (each scene
+drawn by sim.domain.random_domain: sun, shade, leaf, soil, hedge and sky colours, blur, noise). Per approach
+(the colour GMM and the small network of models/), one row:
+
+  pixel P/R/F1   over all pixels of the mix's frames
+  inst R         true fruit (>= 20 visible px, the simulator's visibility rule) matched by a predicted instance
+                 with mask IoU >= 0.5
+  inst R 50%     the same over the fruit with at least half of their projected disc visible in the frame
+  inst P         predicted instances matched so, over the predicted instances (those matching an uncounted
+                 fruit left out)
+  cc R           inst R with one instance per connected component (no splitting of touching fruit)
+  ms             median time of segment_fruit per 640 x 480 frame (scores, mask, instances)
+
+A row `truth` splits the true fruit mask itself: the ceiling that instance splitting reaches with perfect pixels.
+
+Real (`--real DIR`: a folder with images/*.jpg and YOLO labels/*.txt, class x y w h normalised; see
+docs/fruit.md for the one measured). Only boxes are annotated there, so: box recall (a true box matched by a
+predicted instance's bounding box with IoU >= 0.5), instance precision likewise, and the share of predicted fruit
+pixels inside any true box (an upper bound of pixel precision). Never tuned on.
+
+Usage:
+  python benchmarks/fruit_pixels.py [--frames 4] [--looks standard randomised] [--real DIR]
+        [--json benchmarks/results/fruit_pixels.json]
+"""
+
+from __future__ import annotations
+
+import argparse
+import time
+from pathlib import Path
+from typing import Any
+
+import cv2
+import numpy as np
+
+from orchard_mapping.core import fruit_pixels as fp
+from orchard_mapping.io.results import portable_json
+from orchard_mapping.train import fruit_pixels as tf
+
+ROOT = Path(__file__).resolve().parents[1]
+MODELS = {"gmm": ROOT / "models" / "fruit_colour_gmm.json", "net": ROOT / "models" / "fruit_net.onnx"}
+MIXES = {"red": 1.0, "green": 0.0, "mixed": 0.6}
+
+
+def _sums(scores: list[fp.FrameScore]) -> dict[str, float]:
+    tp, fpos, fn = (sum(getattr(s, k) for s in scores) for k in ("true_positive", "false_positive", "false_negative"))
+    p, r = tp / max(tp + fpos, 1), tp / max(tp + fn, 1)
+    true_n, found = sum(s.true_instances for s in scores), sum(s.found for s in scores)
+    pred_n, matched = sum(s.predicted for s in scores), sum(s.matched_predictions for s in scores)
+    return {"precision": round(p, 4), "recall": round(r, 4), "f1": round(2 * p * r / max(p + r, 1e-9), 4),
+            "instance_recall": round(found / max(true_n, 1), 4), "instance_precision": round(matched / max(pred_n, 1), 4),
+            "true_instances": true_n, "frames": len(scores)}
+
+
+def _score(f: tf.LabelledFrame, pred: fp.FruitMask) -> tuple[fp.FrameScore, fp.FrameScore, fp.FrameScore]:
+    """(all fruit >= 20 px, fruit >= 50 % visible, components only) scores of pred on frame f."""
+    inst, n = fp.split_instances(pred.mask, fp.FruitParams(split="none"))
+    return (fp.score_frame(pred, f.instances), fp.score_frame(pred, f.instances, counted=f.visible_fraction >= 0.5),
+            fp.score_frame(fp.FruitMask(pred.mask, inst, n), f.instances))
+
+
+def simulated(models: dict[str, fp.FruitPixelModel], looks: list[str], frames: int) -> list[dict[str, Any]]:
+    rows = []
+    for look in looks:
+        for mix, rf in MIXES.items():
+            data = tf.frames_for(tf.HELDOUT_SEEDS, red_fraction=rf, randomise=look == "randomised",
+                                 frames_per_side=frames)
+            for name, model in {**models, "truth": None}.items():
+                scores, half, cc, ms = [], [], [], []
+                for f in data:
+                    t0 = time.perf_counter()
+                    if model is None:
+                        inst, n = fp.split_instances(f.instances > 0)
+                        pred = fp.FruitMask(inst > 0, inst, n)
+                    else:
+                        pred = fp.segment_fruit(f.rgb, model)
+                    ms.append(1000 * (time.perf_counter() - t0))
+                    a, b, c = _score(f, pred)
+                    scores.append(a)
+                    half.append(b)
+                    cc.append(c)
+                row = {"look": look, "mix": mix, "red_fraction": rf, "model": name, **_sums(scores),
+                       "instance_recall_half_visible": _sums(half)["instance_recall"],
+                       "half_visible_instances": _sums(half)["true_instances"],
+                       "cc_instance_recall": _sums(cc)["instance_recall"], "ms": round(float(np.median(ms)), 1)}
+                rows.append(row)
+                print(f"{look:10s} {mix:6s} {name:5s} P {row['precision']:.3f} R {row['recall']:.3f} "
+                      f"F1 {row['f1']:.3f} | inst R {row['instance_recall']:.3f} (50% {row['instance_recall_half_visible']:.3f}) "
+                      f"P {row['instance_precision']:.3f} cc R {row['cc_instance_recall']:.3f} "
+                      f"({row['true_instances']}/{row['half_visible_instances']} fruit) {row['ms']:.0f} ms", flush=True)
+    return rows
+
+
+def _boxes(inst: np.ndarray, n: int) -> np.ndarray:
+    """(n, 4) x1 y1 x2 y2 (pixel borders) of instances 1..n."""
+    out = np.zeros((n, 4))
+    for k in range(1, n + 1):
+        ys, xs = np.nonzero(inst == k)
+        out[k - 1] = (xs.min(), ys.min(), xs.max() + 1, ys.max() + 1) if len(xs) else 0
+    return out
+
+
+def _box_iou(a: np.ndarray, b: np.ndarray) -> np.ndarray:
+    """(A, B) IoU of boxes a (A, 4) and b (B, 4)."""
+    lo = np.maximum(a[:, None, :2], b[None, :, :2])
+    hi = np.minimum(a[:, None, 2:], b[None, :, 2:])
+    inter = np.prod(np.clip(hi - lo, 0, None), axis=2)
+    area = lambda x: np.prod(x[:, 2:] - x[:, :2], axis=1)  # noqa: E731
+    return inter / np.maximum(area(a)[:, None] + area(b)[None, :] - inter, 1e-9)
+
+
+def real(models: dict[str, fp.FruitPixelModel], folder: Path) -> list[dict[str, Any]]:
+    images = sorted((folder / "images").glob("*.jpg"))
+    rows = []
+    for name, model in models.items():
+        true_n = found = pred_n = matched = 0
+        in_box = px = 0
+        ms = []
+        for path in images:
+            rgb = cv2.cvtColor(cv2.imread(str(path)), cv2.COLOR_BGR2RGB)
+            h, w = rgb.shape[:2]
+            text = (folder / "labels" / f"{path.stem}.txt").read_text().split()
+            lab = np.asarray(text, float).reshape(-1, 5)  # (B, 5) class x y w h; an empty file: no fruit
+            gt = np.stack([(lab[:, 1] - lab[:, 3] / 2) * w, (lab[:, 2] - lab[:, 4] / 2) * h,
+                           (lab[:, 1] + lab[:, 3] / 2) * w, (lab[:, 2] + lab[:, 4] / 2) * h], 1)
+            t0 = time.perf_counter()
+            pred = fp.segment_fruit(rgb, model)
+            ms.append(1000 * (time.perf_counter() - t0))
+            iou = _box_iou(gt, _boxes(pred.instances, pred.count))
+            hit = iou >= 0.5
+            true_n += len(gt)
+            found += int(hit.any(1).sum())
+            pred_n += pred.count
+            matched += int(hit.any(0).sum())
+            cover = np.zeros((h, w), bool)
+            for x1, y1, x2, y2 in gt.round().astype(int):
+                cover[max(y1, 0):y2, max(x1, 0):x2] = True
+            in_box += int(np.count_nonzero(pred.mask & cover))
+            px += int(np.count_nonzero(pred.mask))
+        row = {"source": folder.name, "model": name, "images": len(images), "true_boxes": true_n,
+               "box_recall": round(found / max(true_n, 1), 4), "instance_precision": round(matched / max(pred_n, 1), 4),
+               "predicted_per_image": round(pred_n / max(len(images), 1), 1),
+               "fruit_pixels_in_boxes": round(in_box / max(px, 1), 4), "ms": round(float(np.median(ms)), 1)}
+        rows.append(row)
+        print(f"real {folder.name} {name}: box recall {row['box_recall']:.3f} ({true_n} boxes, {len(images)} images), "
+              f"instance precision {row['instance_precision']:.3f}, {row['predicted_per_image']} instances/image, "
+              f"fruit pixels in boxes {row['fruit_pixels_in_boxes']:.3f}, {row['ms']:.0f} ms", flush=True)
+    return rows
+
+
+def main() -> None:
+    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    ap.add_argument("--frames", type=int, default=4, help="frames per side and scene")
+    ap.add_argument("--looks", nargs="+", default=["standard", "randomised"], choices=["standard", "randomised"])
+    ap.add_argument("--real", type=Path, default=None, help="folder with images/*.jpg and YOLO labels/*.txt")
+    ap.add_argument("--json", type=Path, default=None)
+    a = ap.parse_args()
+    models = {k: fp.load_model(p) for k, p in MODELS.items()}
+    rows = simulated(models, a.looks, a.frames)
+    real_rows = real(models, a.real) if a.real else []
+    if a.json:
+        a.json.parent.mkdir(parents=True, exist_ok=True)
+        a.json.write_text(portable_json({"benchmark": "fruit_pixels", "heldout_seeds": list(tf.HELDOUT_SEEDS),
+                                         "frames_per_side": a.frames, "trees": 2, "simulated": rows,
+                                         "real": real_rows, "params": repr(fp.FruitParams())}, indent=1))
+
+
+if __name__ == "__main__":
+    main()
