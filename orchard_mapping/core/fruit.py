@@ -66,7 +66,7 @@ class FruitParams:
     masks_dir: str = ""
     # the pixel model (core.fruit_pixels; a relative path is looked up from the working directory, then
     # beside the package)
-    model: str = "models/fruit_colour_gmm.json"
+    model: str = "models/fruit_net.onnx"
     # m of camera path between the keyframes searched for fruit: the trunk detector's spacing (a fruit is in
     # view for ~1.5 m of path at 1.4 m range: about ten looks)
     every_m: float = 0.15
