@@ -40,14 +40,20 @@ def _row():
     return points, point_tree, seen(front_i, "front"), seen(back_i, "back")
 
 
-def test_each_fruit_once_per_tree_and_the_ground_apart():
-    points, point_tree, front, back = _row()
+TREES = [ResultTree(10, (0.0, 0.0, 0.0)), ResultTree(11, (1.0, 0.0, 0.0))]
+UP = np.tile([0.0, 0.0, 1.0], (2, 1))  # each tree's local ground normal
+
+
+def _measure(front: SideFruit | None, back: SideFruit | None, points: np.ndarray, point_tree: np.ndarray):
     sides = {"front": _side("front", front), "back": _side("back", back)}
     poses = {s: sm.keyframe_poses for s, sm in sides.items()}
-    trees = [ResultTree(10, (0.0, 0.0, 0.0)), ResultTree(11, (1.0, 0.0, 0.0))]
-    up = np.tile([0.0, 0.0, 1.0], (2, 1))
-    out, fruit = measure_fruit(sides, poses, trees, points, point_tree, np.array([t.position for t in trees]), up,
-                               FruitParams())
+    return measure_fruit(sides, poses, TREES, points, point_tree, np.array([t.position for t in TREES]), UP,
+                         FruitParams())
+
+
+def test_each_fruit_once_per_tree_and_the_ground_apart():
+    points, point_tree, front, back = _row()
+    out, fruit = _measure(front, back, points, point_tree)
     assert [t.fruit_count for t in out] == [12, 9]
     assert out[0].extra["fruit_count_front"] == 8 and out[0].extra["fruit_count_back"] == 8
     assert out[0].extra["fruit_seen_from_both"] == 4
@@ -60,15 +66,9 @@ def test_each_fruit_once_per_tree_and_the_ground_apart():
 
 def test_one_side_without_fruit_is_flagged_not_counted_twice():
     points, point_tree, front, _ = _row()
-    sides = {"front": _side("front", front), "back": _side("back", None)}
-    poses = {s: sm.keyframe_poses for s, sm in sides.items()}
-    trees = [ResultTree(10, (0.0, 0.0, 0.0)), ResultTree(11, (1.0, 0.0, 0.0))]
-    up = np.tile([0.0, 0.0, 1.0], (2, 1))
-    out, _ = measure_fruit(sides, poses, trees, points, point_tree, np.array([t.position for t in trees]), up,
-                           FruitParams())
+    out, _ = _measure(front, None, points, point_tree)
     assert [t.fruit_count for t in out] == [8, 6]
     assert all(NO_TWO_SIDE_COUNT in t.flags for t in out)
     # no side carries fruit: trees unchanged, no fruit result
-    none = {"front": _side("front", None), "back": _side("back", None)}
-    same, fr = measure_fruit(none, poses, trees, points, point_tree, np.zeros((2, 3)), up, FruitParams())
-    assert same == trees and fr is None
+    same, fr = _measure(None, None, points, point_tree)
+    assert same == TREES and fr is None
