@@ -94,3 +94,39 @@ def foot_from_feet(feet: list[tuple[int, np.ndarray]]) -> np.ndarray:
     (as in foot_on_shared_axis); feet: per side, (ground_kind of its trunk, its base (3,) carried into map)."""
     best = max(kind for kind, _ in feet)
     return np.mean([p for kind, p in feet if kind == best], axis=0)
+
+
+# A one-sided trunk this close (m, across the ground) to a tree both sides saw is that tree, seen again by a
+# side whose trunk the pairing missed: orchards plant trees 0.5 m apart at the closest, a trunk is < 0.3 m wide.
+DUPLICATE_TREE_M = 0.25
+# A one-sided trunk this far (m) across the row from the line through the trees both sides saw is not in this
+# row: a post or trunk of the next row seen through a gap, a detection on a weed. Rows are 3-4 m apart; a
+# row's trunks stand within ~0.2 m of its line.
+OFF_ROW_M = 0.5
+
+
+def one_sided_outliers(positions: np.ndarray, two_sided: np.ndarray, up: np.ndarray
+                       ) -> tuple[np.ndarray, np.ndarray]:
+    """For trees at positions (T, 3) (two_sided (T,) bool: seen from both sides) in a frame with unit up (3,):
+    (duplicate_of (T,) int: the two-sided tree a one-sided one repeats, -1 none; off_row (T,) bool: a one-sided
+    tree further than OFF_ROW_M across the row line, which needs two two-sided trees)."""
+    P = np.asarray(positions, float).reshape(-1, 3)
+    both = np.asarray(two_sided, bool)
+    up = np.asarray(up, float) / np.linalg.norm(up)
+    flat = P - np.outer(P @ up, up)  # (T, 3) on the ground plane through the origin
+    dup = np.full(len(P), -1)
+    off = np.zeros(len(P), bool)
+    idx = np.flatnonzero(both)
+    if not len(idx):
+        return dup, off
+    one = np.flatnonzero(~both)
+    d = np.linalg.norm(flat[one, None, :] - flat[None, idx, :], axis=2)  # (O, B)
+    near = d.min(axis=1) < DUPLICATE_TREE_M
+    dup[one[near]] = idx[np.argmin(d[near], axis=1)]
+    if len(idx) >= 2:
+        along = row_direction(flat[idx])
+        across = np.cross(up, along)
+        c = flat[idx].mean(axis=0)
+        off[one] = np.abs((flat[one] - c) @ across) > OFF_ROW_M
+        off[dup >= 0] = False
+    return dup, off

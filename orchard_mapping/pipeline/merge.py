@@ -22,11 +22,12 @@ from orchard_mapping.core.trees import (
     foot_on_shared_axis,
     ground_kind,
     merge_axis,
+    one_sided_outliers,
     row_direction,
     trunk_shapes,
     two_side_ground,
 )
-from orchard_mapping.core.trunks import TrunkLandmark
+from orchard_mapping.core.trunks import TrunkLandmark, side_up_direction
 from orchard_mapping.errors import AlignmentError
 from orchard_mapping.io.results import ResultTree
 from orchard_mapping.pipeline.trunks import DETECTOR_UNAVAILABLE, BandPair, TrunkWorker, two_side_diameter
@@ -145,6 +146,9 @@ def tree_of_trunk(trees: list[ResultTree]) -> dict[tuple[str, int], int]:
     return {(side, own["trunk_id"]): t.id for t in trees for side, own in (t.per_side or {}).items()}
 
 
+OFF_ROW_LINE = "off_row_line"  # a one-sided trunk far across the row's line: not this row's tree
+
+
 def two_side_trees(m: MergeOutcome, sides: dict[str, SideMap], cfg: OrchardConfig,
                    clouds: dict[str, np.ndarray] | None = None, worker: "TrunkWorker | None" = None
                    ) -> list[ResultTree]:
@@ -227,6 +231,26 @@ def _carried_flags(*trunks: TrunkLandmark) -> tuple[str, ...]:
     return (DETECTOR_UNAVAILABLE,) if any(DETECTOR_UNAVAILABLE in t.flags for t in trunks) else ()
 
 
+def _without_duplicates(trees: list[ResultTree], merged: MergeOutcome, sides: dict[str, SideMap]
+                        ) -> list[ResultTree]:
+    """The trees less the one-sided ones that repeat a tree both sides saw (core.trees.one_sided_outliers),
+    and with OFF_ROW_LINE flagged on one-sided ones off the row's line (the traits stage leaves them out)."""
+    if len(trees) < 2:
+        return trees
+    up = side_up_direction(np.concatenate(list(map_poses(merged, sides).values())))
+    two = np.array([len(t.per_side or {}) == 2 for t in trees])
+    dup, off = one_sided_outliers(np.array([t.position for t in trees]), two, up)
+    out = []
+    for t, d, o in zip(trees, dup.tolist(), off.tolist(), strict=True):
+        if d >= 0:
+            log.warning("tree %d, seen from %s only, stands where tree %d does (both sides saw it): the same "
+                        "tree, left out", t.id, next(iter(t.per_side or {"one side": 0})), trees[d].id)
+            continue
+        out.append(replace(t, flags=t.flags + (OFF_ROW_LINE,)) if o else t)
+    # ids stay those of two_side_trees' list: the side merger's and the reporter's messages name them
+    return out
+
+
 def merge_to_trees(sides: dict[str, SideMap], cfg: OrchardConfig, worker: "TrunkWorker | None" = None
                    ) -> tuple[MergeOutcome, dict[str, np.ndarray], list[ResultTree]]:
     """The two sides merged (merge_sides), their clouds carried into map, and the trees: what `run` and the
@@ -234,7 +258,7 @@ def merge_to_trees(sides: dict[str, SideMap], cfg: OrchardConfig, worker: "Trunk
     fits half the trees' two-side diameters (two_side_trees)."""
     merged = merge_sides(sides["front"], sides["back"], cfg)
     clouds = clouds_in_map(merged, sides)
-    trees = two_side_trees(merged, sides, cfg, clouds, worker)
+    trees = _without_duplicates(two_side_trees(merged, sides, cfg, clouds, worker), merged, sides)
     if merged.method == GLOBAL_FEATURES:
         log.warning("too few trunks seen from both sides for the semantic merge: the sides were merged from the "
                     "global features alone (front views, each side's trunk line; error up to a trunk's width), "

@@ -28,7 +28,7 @@ from orchard_mapping.core.trunks import TrunkLandmark, side_up_direction
 from orchard_mapping.io.laz import CLASS, SIDE_CODE
 from orchard_mapping.io.results import ResultTree
 from orchard_mapping.pipeline.fruit import TreeFruit, measure_fruit
-from orchard_mapping.pipeline.merge import MergeOutcome, map_poses, merge_to_trees, ray_in_map
+from orchard_mapping.pipeline.merge import OFF_ROW_LINE, MergeOutcome, map_poses, merge_to_trees, ray_in_map
 from orchard_mapping.pipeline.trunks import TrunkWorker
 
 __all__ = ["NO_CANOPY_POINTS", "SEGMENTATION_UNCERTAIN", "RowLabels", "merge_and_measure", "measure_trees"]
@@ -128,6 +128,10 @@ def measure_trees(merged: MergeOutcome, sides: dict[str, SideMap], clouds: dict[
                   trees: list[ResultTree], cfg: OrchardConfig) -> tuple[list[ResultTree], RowLabels]:
     """The trees with height and canopy volume filled in (flags where they could not be measured), and the
     merged cloud's per-point labels. clouds: each side's cloud in map (clouds_in_map)."""
+    if any(OFF_ROW_LINE in t.flags for t in trees):  # not this row's trees: no cell of their own, no traits
+        kept, labels = measure_trees(merged, sides, clouds, [t for t in trees if OFF_ROW_LINE not in t.flags], cfg)
+        by_id = {t.id: t for t in kept}
+        return [by_id.get(t.id, t) for t in trees], labels
     t0 = time.perf_counter()
     poses = map_poses(merged, sides)
     pts = np.concatenate([clouds["front"], clouds["back"]])  # (N, 3) map

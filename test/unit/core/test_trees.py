@@ -71,3 +71,24 @@ def test_two_side_ground_fits_the_plane_both_sides_see():
     assert abs(fit.point[2]) < 0.005
     assert abs(abs(np.asarray(fit.normal)[2]) - 1.0) < 1e-3
     assert two_side_ground({}, Tt, np.zeros(3), 0.05, GroundParams(), np.random.default_rng(0)) is None
+
+
+def test_one_sided_trunks_that_repeat_a_tree_or_stand_off_the_row_are_found():
+    """Five two-sided trees along x (1 m apart, up z); one-sided: one 6 cm from tree 2 (the same tree seen
+    again), one 0.9 m across the row (not this row's), one on the row between trees 3 and 4 (a tree one side
+    alone saw: kept)."""
+    from orchard_mapping.core.trees import one_sided_outliers
+
+    two = np.column_stack([np.arange(5.0), 0.05 * np.sin(np.arange(5.0)), np.full(5, -1.2)])
+    one = np.array([[2.05, 0.03, -1.1], [1.5, 0.9, -1.3], [3.5, 0.02, -1.2]])
+    P = np.vstack([two, one])
+    dup, off = one_sided_outliers(P, np.r_[np.ones(5, bool), np.zeros(3, bool)], np.array([0.0, 0.0, 1.0]))
+    assert dup.tolist() == [-1] * 5 + [2, -1, -1]
+    assert off.tolist() == [False] * 6 + [True, False]
+    # the distance is across the ground: the repeat 10 cm below its tree is still a repeat
+    low = P.copy()
+    low[5, 2] -= 0.1
+    assert one_sided_outliers(low, np.r_[np.ones(5, bool), np.zeros(3, bool)], np.array([0.0, 0.0, 1.0]))[0][5] == 2
+    # without two-sided trees nothing is judged
+    d0, o0 = one_sided_outliers(one, np.zeros(3, bool), np.array([0.0, 0.0, 1.0]))
+    assert (d0 == -1).all() and not o0.any()
