@@ -18,6 +18,7 @@ from orchard_mapping.core.posts import post_shapes
 from orchard_mapping.core.semantic_ba import HeightAnchor, SemanticBAResult, SideShapes, semantic_bundle_adjust
 from orchard_mapping.core.sidemap import SideMap
 from orchard_mapping.core.trees import (
+    DUPLICATE_TREE_M,
     foot_from_feet,
     foot_on_shared_axis,
     ground_kind,
@@ -147,6 +148,7 @@ def tree_of_trunk(trees: list[ResultTree]) -> dict[tuple[str, int], int]:
 
 
 OFF_ROW_LINE = "off_row_line"  # a one-sided trunk far across the row's line: not this row's tree
+PAIRED_AFTER_MERGE = "paired_after_merge"  # one tree from a front-only and a back-only trunk at one place
 
 
 def two_side_trees(m: MergeOutcome, sides: dict[str, SideMap], cfg: OrchardConfig,
@@ -248,7 +250,40 @@ def _without_duplicates(trees: list[ResultTree], merged: MergeOutcome, sides: di
             continue
         out.append(replace(t, flags=t.flags + (OFF_ROW_LINE,)) if o else t)
     # ids stay those of two_side_trees' list: the side merger's and the reporter's messages name them
-    return out
+    return join_opposite_one_sided(out, up)
+
+
+def join_opposite_one_sided(trees: list[ResultTree], up: np.ndarray) -> list[ResultTree]:
+    """A tree seen from the front only and one seen from the back only within DUPLICATE_TREE_M of each other
+    (across the ground) are one tree whose trunks the pairing missed: one tree with both sides' trunks, its
+    foot the lower of the two (a side that saw the ground saw it lowest), its diameter their mean, flagged
+    PAIRED_AFTER_MERGE (no two-side fit)."""
+    one = {side: [k for k, t in enumerate(trees) if set(t.per_side or {}) == {side}] for side in ("front", "back")}
+    if not one["front"] or not one["back"]:
+        return trees
+    up = up / np.linalg.norm(up)
+    P = np.array([t.position for t in trees])
+    flat = P - np.outer(P @ up, up)
+    d = np.linalg.norm(flat[one["front"], None, :] - flat[None, one["back"], :], axis=2)  # (F, B)
+    gone: set[int] = set()
+    joined: dict[int, ResultTree] = {}
+    for fi, bi in zip(*np.nonzero(d < DUPLICATE_TREE_M), strict=True):
+        f, b = one["front"][int(fi)], one["back"][int(bi)]
+        if f in joined or b in gone or d[fi, bi] > d[fi].min() or d[fi, bi] > d[:, bi].min():
+            continue  # each joins its nearest only
+        tf, tb = trees[f], trees[b]
+        feet = [tf.position, tb.position]
+        foot = min(feet, key=lambda p: float(np.asarray(p) @ up))
+        dia = [x for x in (tf.trunk_diameter_m, tb.trunk_diameter_m) if x is not None]
+        flags = tuple(x for x in tf.flags + tb.flags if not x.startswith("seen_from_")) + (PAIRED_AFTER_MERGE,)
+        joined[f] = replace(tf, position=tuple(float(v) for v in foot),
+                            trunk_diameter_m=float(np.mean(dia)) if dia else None,
+                            per_side={**(tf.per_side or {}), **(tb.per_side or {})},
+                            flags=tuple(dict.fromkeys(flags)))
+        gone.add(b)
+        log.warning("trees %d (front only) and %d (back only) stand %.0f mm apart: one tree, its trunks "
+                    "paired after the merge", tf.id, tb.id, 1000 * d[fi, bi])
+    return [joined.get(k, t) for k, t in enumerate(trees) if k not in gone]
 
 
 def merge_to_trees(sides: dict[str, SideMap], cfg: OrchardConfig, worker: "TrunkWorker | None" = None

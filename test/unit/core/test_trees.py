@@ -92,3 +92,25 @@ def test_one_sided_trunks_that_repeat_a_tree_or_stand_off_the_row_are_found():
     # without two-sided trees nothing is judged
     d0, o0 = one_sided_outliers(one, np.zeros(3, bool), np.array([0.0, 0.0, 1.0]))
     assert (d0 == -1).all() and not o0.any()
+
+
+def test_a_front_only_and_a_back_only_trunk_at_one_place_are_one_tree():
+    """pipeline.merge.join_opposite_one_sided: the pairing missed a trunk both sides saw (front-only and
+    back-only trees 1 cm apart): one tree with both sides' trunks, the lower foot, the mean diameter, flagged;
+    a one-sided tree elsewhere and two one-sided trees of the same side stay as they are."""
+    from orchard_mapping.io.results import ResultTree
+    from orchard_mapping.pipeline.merge import PAIRED_AFTER_MERGE, join_opposite_one_sided
+
+    trees = [
+        ResultTree(0, (0.0, 0.0, 0.0), 0.05, per_side={"front": {"trunk_id": 0}, "back": {"trunk_id": 0}}),
+        ResultTree(1, (1.0, 0.0, 0.1), 0.04, per_side={"front": {"trunk_id": 1}}, flags=("seen_from_front_only",)),
+        ResultTree(2, (1.01, 0.0, -0.14), 0.06, per_side={"back": {"trunk_id": 1}}, flags=("seen_from_back_only",)),
+        ResultTree(3, (2.0, 0.0, 0.0), 0.05, per_side={"front": {"trunk_id": 2}}, flags=("seen_from_front_only",)),
+        ResultTree(4, (2.05, 0.0, 0.0), 0.05, per_side={"front": {"trunk_id": 3}}, flags=("seen_from_front_only",)),
+    ]
+    out = join_opposite_one_sided(trees, np.array([0.0, 0.0, 1.0]))
+    assert [t.id for t in out] == [0, 1, 3, 4]
+    j = out[1]
+    assert set(j.per_side) == {"front", "back"} and j.position == (1.01, 0.0, -0.14)
+    assert abs(j.trunk_diameter_m - 0.05) < 1e-12 and j.flags == (PAIRED_AFTER_MERGE,)
+    assert out[2].flags == ("seen_from_front_only",)
