@@ -114,7 +114,11 @@ def _open_reader(path: Path) -> Iterator[AnyReader]:
         if cut is None:
             raise BagReadError(f"{what}: {err}", bag=bag) from err
         # a recording cut short: its whole messages, from a closed copy (io.salvage)
-        reader = AnyReader([salvaged_copy(cut).path], default_typestore=typestore())
+        try:
+            copy = salvaged_copy(cut)
+        except BagReadError as none:
+            raise BagReadError(f"{what}: {err}; cut short, and {none.args[0]}", bag=bag) from err
+        reader = AnyReader([copy.path], default_typestore=typestore())
         reader.open()
     try:
         yield reader
