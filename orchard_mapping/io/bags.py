@@ -116,8 +116,9 @@ def _open_reader(path: Path) -> Iterator[AnyReader]:
         # a recording cut short: its whole messages, from a closed copy (io.salvage)
         try:
             copy = salvaged_copy(cut)
-        except BagReadError as none:
-            raise BagReadError(f"{what}: {err}; cut short, and {none.args[0]}", bag=bag) from err
+        except BagReadError:
+            raise BagReadError(f"{what}: {err} (its end is missing, and no whole message lies before the cut)",
+                               bag=bag) from err
         reader = AnyReader([copy.path], default_typestore=typestore())
         reader.open()
     try:
