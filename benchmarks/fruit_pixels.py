@@ -59,7 +59,7 @@ def _sums(scores: list[fp.FrameScore]) -> dict[str, float]:
 
 def _score(f: tf.LabelledFrame, pred: fp.FruitMask) -> tuple[fp.FrameScore, fp.FrameScore, fp.FrameScore]:
     """(all fruit >= 20 px, fruit >= 50 % visible, components only) scores of pred on frame f."""
-    inst, n = fp.split_instances(pred.mask, fp.FruitParams(split="none"))
+    inst, n = fp.split_instances(pred.mask, fp.FruitMaskParams(split="none"))
     return (fp.score_frame(pred, f.instances), fp.score_frame(pred, f.instances, counted=f.visible_fraction >= 0.5),
             fp.score_frame(fp.FruitMask(pred.mask, inst, n), f.instances))
 
@@ -167,7 +167,7 @@ def main() -> None:
         a.json.parent.mkdir(parents=True, exist_ok=True)
         a.json.write_text(portable_json({"benchmark": "fruit_pixels", "heldout_seeds": list(tf.HELDOUT_SEEDS),
                                          "frames_per_side": a.frames, "trees": 2, "simulated": rows,
-                                         "real": real_rows, "params": repr(fp.FruitParams())}, indent=1))
+                                         "real": real_rows, "params": repr(fp.FruitMaskParams())}, indent=1))
 
 
 if __name__ == "__main__":

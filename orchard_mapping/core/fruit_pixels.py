@@ -33,7 +33,7 @@ import numpy as np
 from orchard_mapping.errors import OrchardMappingError
 
 __all__ = [
-    "ColourGmm", "FrameScore", "FruitImageError", "FruitMask", "FruitModelError", "FruitParams",
+    "ColourGmm", "FrameScore", "FruitImageError", "FruitMask", "FruitMaskParams", "FruitModelError",
     "FruitNet", "FruitPixelError", "FruitPixelModel", "Gaussians", "load_model", "pixel_features",
     "pixel_scores", "save_model", "score_frame", "segment_fruit", "split_instances",
 ]
@@ -243,7 +243,7 @@ def _load_net(path: Path) -> FruitNet:
 
 
 @dataclass(frozen=True)
-class FruitParams:
+class FruitMaskParams:
     """Mask cleaning and instance splitting (chosen on the validation seeds of train/fruit_pixels.py)."""
 
     # Components smaller than this are dropped (px): speckle of fruit-coloured noise; a fruit seen whole is
@@ -278,7 +278,7 @@ class FruitMask:
     count: int
 
 
-def _peaks(dist: np.ndarray, params: FruitParams) -> np.ndarray:
+def _peaks(dist: np.ndarray, params: FruitMaskParams) -> np.ndarray:
     """(P, 2) int (row, col) of the distance transform's peaks that seed instances, highest first.
 
     A lower peak is its own fruit only when the distance dips between it and every higher peak kept: on the
@@ -307,9 +307,9 @@ def _peaks(dist: np.ndarray, params: FruitParams) -> np.ndarray:
     return rc[keep]
 
 
-def split_instances(mask: np.ndarray, params: FruitParams | None = None) -> tuple[np.ndarray, int]:
+def split_instances(mask: np.ndarray, params: FruitMaskParams | None = None) -> tuple[np.ndarray, int]:
     """(instances (H, W) int32, count) of a boolean mask (H, W): its components, touching fruit split."""
-    params = params or FruitParams()
+    params = params or FruitMaskParams()
     if mask.ndim != 2 or mask.dtype != bool:
         raise FruitImageError(f"mask must be (H, W) bool, got shape {mask.shape} dtype {mask.dtype}")
     m8 = mask.astype(np.uint8)
@@ -343,9 +343,9 @@ def split_instances(mask: np.ndarray, params: FruitParams | None = None) -> tupl
     return markers, count
 
 
-def segment_fruit(rgb: np.ndarray, model: FruitPixelModel, params: FruitParams | None = None) -> FruitMask:
-    """Fruit pixels and instances of rgb (H, W, 3) uint8 under model (params: FruitParams() when None)."""
-    params = params or FruitParams()
+def segment_fruit(rgb: np.ndarray, model: FruitPixelModel, params: FruitMaskParams | None = None) -> FruitMask:
+    """Fruit pixels and instances of rgb (H, W, 3) uint8 under model (params: FruitMaskParams() when None)."""
+    params = params or FruitMaskParams()
     mask = pixel_scores(rgb, model) > model.threshold  # (H, W)
     for r, op in ((params.open_radius_px, cv2.MORPH_OPEN), (params.close_radius_px, cv2.MORPH_CLOSE)):
         if r > 0:

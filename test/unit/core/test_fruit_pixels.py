@@ -77,7 +77,7 @@ def test_one_disc_and_a_speck():
 
 
 def test_components_without_splitting():
-    inst, n = fp.split_instances(_discs([(40, 40), (68, 40)], 15), fp.FruitParams(split="none"))
+    inst, n = fp.split_instances(_discs([(40, 40), (68, 40)], 15), fp.FruitMaskParams(split="none"))
     assert n == 1
 
 
