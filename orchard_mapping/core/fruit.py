@@ -117,10 +117,6 @@ class SideFruit:
     diameters_m: np.ndarray  # (F,)
     views: np.ndarray  # (F,) int, keyframes each was seen in
 
-    def moved(self, T: np.ndarray) -> SideFruit:
-        """The same fruit with positions mapped by the rigid T (4, 4)."""
-        return SideFruit(self.side, self.positions @ T[:3, :3].T + T[:3, 3], self.diameters_m, self.views)
-
 
 @dataclass(frozen=True)
 class RowFruit:

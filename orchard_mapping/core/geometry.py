@@ -15,6 +15,7 @@ from scipy.spatial.transform import Rotation
 from orchard_mapping.errors import AlignmentError
 
 __all__ = [
+    "keyframes_every",
     "group_medians",
     "Similarity",
     "decompose_similarity",
@@ -156,6 +157,18 @@ def path_length(positions: np.ndarray) -> float:
     if positions.shape[0] < 2:
         return 0.0
     return float(np.linalg.norm(np.diff(positions, axis=0), axis=1).sum())
+
+
+def keyframes_every(poses: np.ndarray, every_m: float) -> list[int]:
+    """Indices of the camera poses (K, 4, 4) at least every_m (m) of straight-line distance on from the last one
+    picked, the first included: the keyframes a detector is given along a side."""
+    picks: list[int] = []
+    last = None
+    for k, T in enumerate(poses):
+        if last is None or np.linalg.norm(T[:3, 3] - last) >= every_m - 1e-6:
+            picks.append(k)
+            last = T[:3, 3]
+    return picks
 
 
 def move_with_keyframes(points: np.ndarray, poses_before: np.ndarray, poses_after: np.ndarray) -> np.ndarray:

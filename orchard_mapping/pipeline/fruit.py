@@ -27,7 +27,7 @@ from orchard_mapping.core.fruit import (
     fruit_observations,
     fruit_of_side,
 )
-from orchard_mapping.core.geometry import move_with_keyframes
+from orchard_mapping.core.geometry import keyframes_every, move_with_keyframes
 from orchard_mapping.core.sidemap import SideMap
 from orchard_mapping.core.types import CameraIntrinsics
 from orchard_mapping.io.bags import RGBDSequence
@@ -50,16 +50,6 @@ def _pixel_model(path: str):
     from orchard_mapping.core.fruit_pixels import load_model
 
     return load_model(resolve_model_path(path))
-
-
-def keyframes_every(poses: np.ndarray, every_m: float) -> list[int]:
-    """Keyframes (indices) at least every_m (m) of camera path apart, the first one included."""
-    picks, last = [], None
-    for k, T in enumerate(poses):
-        if last is None or np.linalg.norm(T[:3, 3] - last) >= every_m - 1e-6:
-            picks.append(k)
-            last = T[:3, 3]
-    return picks
 
 
 class FruitTap:

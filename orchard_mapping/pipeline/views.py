@@ -23,6 +23,7 @@ from orchard_mapping.core.geometric_trunks import (
     mask_place,
     on_tree_column,
 )
+from orchard_mapping.core.geometry import keyframes_every
 from orchard_mapping.core.trunks import TrunkView
 from orchard_mapping.core.types import CameraIntrinsics, ImagePatch, RGBDFrame, mask_bounds
 from orchard_mapping.pipeline.sides import KeyframeImages
@@ -170,12 +171,7 @@ def add_column_views(views: TrunkViews, points: np.ndarray, poses: np.ndarray, s
                             tp.associate_radius_m, only=tp.geometric == "only")
     if not todo:
         return 0
-    picks: dict[int, int] = {}  # frame index -> keyframe
-    last = None
-    for k, T in enumerate(poses):
-        if last is None or np.linalg.norm(T[:3, 3] - last) >= tp.detect_every_m - 1e-6:
-            picks[frame_index[k]] = k
-            last = T[:3, 3]
+    picks = {frame_index[k]: k for k in keyframes_every(poses, tp.detect_every_m)}  # frame index -> keyframe
     added = 0
     for fi, depth, _ in images.frames(sorted(picks)):
         k = picks[fi]
