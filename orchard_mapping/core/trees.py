@@ -105,17 +105,37 @@ DUPLICATE_TREE_M = 0.25
 OFF_ROW_M = 0.5
 
 
+def _across_ground(positions: np.ndarray, up: np.ndarray) -> np.ndarray:
+    """(T, 3) the positions (T, 3) with their height along the unit up (3,) taken out: distances across the
+    ground, where trees are told apart (a foot misplaced up or down is still the same trunk)."""
+    P = np.asarray(positions, float).reshape(-1, 3)
+    return P - np.outer(P @ up, up)
+
+
+def opposite_one_sided_pairs(front_only: np.ndarray, back_only: np.ndarray, up: np.ndarray) -> list[tuple[int, int]]:
+    """(i, j) pairs of a front-only tree (front_only (F, 3) positions) and a back-only one (back_only (B, 3))
+    within DUPLICATE_TREE_M of each other across the ground (unit up (3,)), each the other's nearest: one trunk
+    both sides saw, whose pairing the merge missed."""
+    if not len(front_only) or not len(back_only):
+        return []
+    up = np.asarray(up, float) / np.linalg.norm(up)
+    f, b = _across_ground(front_only, up), _across_ground(back_only, up)
+    d = np.linalg.norm(f[:, None, :] - b[None, :, :], axis=2)  # (F, B)
+    near_f, near_b = np.argmin(d, axis=1), np.argmin(d, axis=0)
+    return [(i, int(near_f[i])) for i in range(len(f))
+            if d[i, near_f[i]] < DUPLICATE_TREE_M and near_b[near_f[i]] == i]
+
+
 def one_sided_outliers(positions: np.ndarray, two_sided: np.ndarray, up: np.ndarray
                        ) -> tuple[np.ndarray, np.ndarray]:
     """For trees at positions (T, 3) (two_sided (T,) bool: seen from both sides) in a frame with unit up (3,):
     (duplicate_of (T,) int: the two-sided tree a one-sided one repeats, -1 none; off_row (T,) bool: a one-sided
     tree further than OFF_ROW_M across the row line, which needs two two-sided trees)."""
-    P = np.asarray(positions, float).reshape(-1, 3)
     both = np.asarray(two_sided, bool)
     up = np.asarray(up, float) / np.linalg.norm(up)
-    flat = P - np.outer(P @ up, up)  # (T, 3) on the ground plane through the origin
-    dup = np.full(len(P), -1)
-    off = np.zeros(len(P), bool)
+    flat = _across_ground(positions, up)
+    dup = np.full(len(flat), -1)
+    off = np.zeros(len(flat), bool)
     idx = np.flatnonzero(both)
     if not len(idx):
         return dup, off

@@ -18,12 +18,12 @@ from orchard_mapping.core.posts import post_shapes
 from orchard_mapping.core.semantic_ba import HeightAnchor, SemanticBAResult, SideShapes, semantic_bundle_adjust
 from orchard_mapping.core.sidemap import SideMap
 from orchard_mapping.core.trees import (
-    DUPLICATE_TREE_M,
     foot_from_feet,
     foot_on_shared_axis,
     ground_kind,
     merge_axis,
     one_sided_outliers,
+    opposite_one_sided_pairs,
     row_direction,
     trunk_shapes,
     two_side_ground,
@@ -233,7 +233,7 @@ def _carried_flags(*trunks: TrunkLandmark) -> tuple[str, ...]:
     return (DETECTOR_UNAVAILABLE,) if any(DETECTOR_UNAVAILABLE in t.flags for t in trunks) else ()
 
 
-def _without_duplicates(trees: list[ResultTree], merged: MergeOutcome, sides: dict[str, SideMap]
+def _set_aside_one_sided(trees: list[ResultTree], merged: MergeOutcome, sides: dict[str, SideMap]
                         ) -> list[ResultTree]:
     """The trees less the one-sided ones that repeat a tree both sides saw (core.trees.one_sided_outliers),
     and with OFF_ROW_LINE flagged on one-sided ones off the row's line (the traits stage leaves them out)."""
@@ -254,26 +254,22 @@ def _without_duplicates(trees: list[ResultTree], merged: MergeOutcome, sides: di
 
 
 def join_opposite_one_sided(trees: list[ResultTree], up: np.ndarray) -> list[ResultTree]:
-    """A tree seen from the front only and one seen from the back only within DUPLICATE_TREE_M of each other
-    (across the ground) are one tree whose trunks the pairing missed: one tree with both sides' trunks, its
+    """A tree seen from the front only and one seen from the back only at one place (core.trees.
+    opposite_one_sided_pairs) are one tree whose trunks the pairing missed: one tree with both sides' trunks, its
     foot the lower of the two (a side that saw the ground saw it lowest), its diameter their mean, flagged
     PAIRED_AFTER_MERGE (no two-side fit)."""
     one = {side: [k for k, t in enumerate(trees) if set(t.per_side or {}) == {side}] for side in ("front", "back")}
-    if not one["front"] or not one["back"]:
+    pairs = opposite_one_sided_pairs(np.array([trees[k].position for k in one["front"]]).reshape(-1, 3),
+                                     np.array([trees[k].position for k in one["back"]]).reshape(-1, 3), up)
+    if not pairs:
         return trees
-    up = up / np.linalg.norm(up)
-    P = np.array([t.position for t in trees])
-    flat = P - np.outer(P @ up, up)
-    d = np.linalg.norm(flat[one["front"], None, :] - flat[None, one["back"], :], axis=2)  # (F, B)
-    gone: set[int] = set()
+    unit_up = np.asarray(up, float) / np.linalg.norm(up)
     joined: dict[int, ResultTree] = {}
-    for fi, bi in zip(*np.nonzero(d < DUPLICATE_TREE_M), strict=True):
-        f, b = one["front"][int(fi)], one["back"][int(bi)]
-        if f in joined or b in gone or d[fi, bi] > d[fi].min() or d[fi, bi] > d[:, bi].min():
-            continue  # each joins its nearest only
+    gone: set[int] = set()
+    for i, j in pairs:
+        f, b = one["front"][i], one["back"][j]
         tf, tb = trees[f], trees[b]
-        feet = [tf.position, tb.position]
-        foot = min(feet, key=lambda p: float(np.asarray(p) @ up))
+        foot = min((tf.position, tb.position), key=lambda p: float(np.asarray(p) @ unit_up))
         dia = [x for x in (tf.trunk_diameter_m, tb.trunk_diameter_m) if x is not None]
         flags = tuple(x for x in tf.flags + tb.flags if not x.startswith("seen_from_")) + (PAIRED_AFTER_MERGE,)
         joined[f] = replace(tf, position=tuple(float(v) for v in foot),
@@ -281,8 +277,8 @@ def join_opposite_one_sided(trees: list[ResultTree], up: np.ndarray) -> list[Res
                             per_side={**(tf.per_side or {}), **(tb.per_side or {})},
                             flags=tuple(dict.fromkeys(flags)))
         gone.add(b)
-        log.warning("trees %d (front only) and %d (back only) stand %.0f mm apart: one tree, its trunks "
-                    "paired after the merge", tf.id, tb.id, 1000 * d[fi, bi])
+        log.warning("trees %d (front only) and %d (back only) stand at one place: one tree, its trunks paired "
+                    "after the merge", tf.id, tb.id)
     return [joined.get(k, t) for k, t in enumerate(trees) if k not in gone]
 
 
@@ -293,7 +289,7 @@ def merge_to_trees(sides: dict[str, SideMap], cfg: OrchardConfig, worker: "Trunk
     fits half the trees' two-side diameters (two_side_trees)."""
     merged = merge_sides(sides["front"], sides["back"], cfg)
     clouds = clouds_in_map(merged, sides)
-    trees = _without_duplicates(two_side_trees(merged, sides, cfg, clouds, worker), merged, sides)
+    trees = _set_aside_one_sided(two_side_trees(merged, sides, cfg, clouds, worker), merged, sides)
     if merged.method == GLOBAL_FEATURES:
         log.warning("too few trunks seen from both sides for the semantic merge: the sides were merged from the "
                     "global features alone (front views, each side's trunk line; error up to a trunk's width), "
