@@ -251,11 +251,7 @@ def _trees_part(
             T_front_world, np.concatenate([np.zeros((0, 3))] + [t.fruit_positions for t in gt.trees])
         )
         radii = np.concatenate([np.zeros(0)] + [t.fruit_radii for t in gt.trees])
-        # the estimates' diameters where trees.json gives them beside the positions (fruit_diameters_m)
-        dia = np.concatenate([np.zeros(0)] + [
-            np.asarray(t.extra.get("fruit_diameters_m", [np.nan] * len(t.fruit_positions)), float).reshape(-1)
-            if len(t.extra.get("fruit_diameters_m", [])) == len(t.fruit_positions)
-            else np.full(len(t.fruit_positions), np.nan) for t in trees if t.fruit_positions is not None])
+        dia = np.concatenate([np.zeros(0)] + [_fruit_diameters(t) for t in trees if t.fruit_positions is not None])
         both = sum(int(t.fruit_visible.get("both", 0)) for t in gt.trees)
         dc = double_count(est_f, true_f, radii, gate_factor, est_diameter_m=dia, true_seen_from_both=both)
     return summary, pairs, traits, fruit, dc
@@ -278,6 +274,14 @@ def _timings_part(gt: GroundTruth, result_dir: Path) -> TimingSummary:
         realtime_factor=tm.elapsed_s / rec if rec else None,
         elapsed_s=tm.elapsed_s,
     )
+
+
+def _fruit_diameters(t: ResultTree) -> np.ndarray:
+    """(F,) m, the diameters trees.json gives beside a tree's fruit_positions (fruit_diameters_m), NaN where it
+    gives none or not one per fruit."""
+    n = len(t.fruit_positions)
+    dia = np.asarray(t.extra.get("fruit_diameters_m", []), float).reshape(-1)
+    return dia if len(dia) == n else np.full(n, np.nan)
 
 
 def _segmentation_part(truth_dir: Path, result_dir: Path, pairs: tuple[TreePair, ...], T_front_world: np.ndarray,

@@ -34,7 +34,7 @@ from orchard_mapping.io.bags import RGBDSequence
 from orchard_mapping.io.results import ResultTree
 from orchard_mapping.pipeline.sides import BagKeyframeImages
 
-__all__ = ["FruitTap", "TreeFruit", "add_fruit", "measure_fruit", "side_fruit_in_map", "FRUIT_ON_GROUND", "NO_TWO_SIDE_COUNT"]
+__all__ = ["FruitTap", "TreeFruit", "add_fruit", "fruit_points", "measure_fruit", "side_fruit_in_map", "FRUIT_ON_GROUND", "NO_TWO_SIDE_COUNT"]
 
 log = logging.getLogger(__name__)
 
@@ -110,6 +110,19 @@ class TreeFruit:
     on_ground: np.ndarray  # (F,) bool: under a tree, on the ground (not counted)
 
 
+FRUIT_POINT_MARGIN_M = 0.01  # m beyond a fruit's radius its points still are (the depth noise at 1.5 m)
+
+
+def fruit_points(points: np.ndarray, row: RowFruit) -> np.ndarray:
+    """(N,) bool: the points (N, 3) within a fruit's radius + FRUIT_POINT_MARGIN_M of its centre."""
+    if not len(row.positions):
+        return np.zeros(len(points), bool)
+    d, k = cKDTree(row.positions).query(points, distance_upper_bound=0.5 * row.diameters_m.max() + FRUIT_POINT_MARGIN_M)
+    hit = np.isfinite(d)
+    hit[hit] = d[hit] <= 0.5 * row.diameters_m[k[hit]] + FRUIT_POINT_MARGIN_M
+    return hit
+
+
 def side_fruit_in_map(sm: SideMap, poses_map: np.ndarray) -> SideFruit:
     """The side's fruit carried into map with its keyframes (poses_map (K, 4, 4)), as its cloud is."""
     f = sm.fruit
@@ -133,12 +146,11 @@ def measure_fruit(sides: dict[str, SideMap], poses: dict[str, np.ndarray], trees
     tree_of = np.full(len(row.positions), -1, int)
     if len(row.positions) and len(points):
         labelled = point_tree >= 0
-        kd = cKDTree(points[labelled])
         lab = point_tree[labelled]
-        for i, (p, d) in enumerate(zip(row.positions, row.diameters_m, strict=True)):
-            near = kd.query_ball_point(p, 0.5 * d + FRUIT_TREE_MARGIN_M)
-            if near:
-                vals, counts = np.unique(lab[near], return_counts=True)
+        near = cKDTree(points[labelled]).query_ball_point(row.positions, 0.5 * row.diameters_m + FRUIT_TREE_MARGIN_M)
+        for i, idx in enumerate(near):  # the tree most of the points round the fruit belong to
+            if idx:
+                vals, counts = np.unique(lab[idx], return_counts=True)
                 tree_of[i] = int(vals[np.argmax(counts)])
     # a fruit without a crown round it: its nearest trunk's tree, the ground test says if it lies there
     feet = np.array([t.position for t in trees], float).reshape(-1, 3)

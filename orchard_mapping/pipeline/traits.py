@@ -16,7 +16,6 @@ from collections.abc import Iterator
 from dataclasses import dataclass, field, replace
 
 import numpy as np
-from scipy.spatial import cKDTree
 
 from orchard_mapping.config import OrchardConfig
 from orchard_mapping.core.geometry import move_with_keyframes
@@ -27,7 +26,7 @@ from orchard_mapping.core.trees import row_direction
 from orchard_mapping.core.trunks import TrunkLandmark, side_up_direction
 from orchard_mapping.io.laz import CLASS, SIDE_CODE
 from orchard_mapping.io.results import ResultTree
-from orchard_mapping.pipeline.fruit import TreeFruit, measure_fruit
+from orchard_mapping.pipeline.fruit import TreeFruit, fruit_points, measure_fruit
 from orchard_mapping.pipeline.merge import OFF_ROW_LINE, MergeOutcome, map_poses, merge_to_trees, ray_in_map
 from orchard_mapping.pipeline.trunks import TrunkWorker
 
@@ -208,12 +207,8 @@ def measure_trees(merged: MergeOutcome, sides: dict[str, SideMap], clouds: dict[
     fruit = None
     if cfg.fruit.enabled:
         out, fruit = measure_fruit(sides, poses, out, pts, tree_id, feet, normals, cfg.fruit)
-        if fruit is not None and len(fruit.row.positions):
-            # a fruit's points: within its radius (+1 cm of depth noise) of its centre
-            d, k = cKDTree(fruit.row.positions).query(pts, distance_upper_bound=0.5 * fruit.row.diameters_m.max() + 0.01)
-            hit = np.isfinite(d)
-            hit[hit] = d[hit] <= 0.5 * fruit.row.diameters_m[k[hit]] + 0.01
-            cls[hit] = CLASS["fruit"]
+        if fruit is not None:
+            cls[fruit_points(pts, fruit.row)] = CLASS["fruit"]
     return out, RowLabels(pts, colors, side.astype(np.uint8), tree_id, cls, R, fruit)
 
 
