@@ -233,6 +233,8 @@ def simulate_training(
     trees: int = typer.Option(3),
     rate: float = typer.Option(1.0, help="Frames per second of the recordings (1 Hz: a frame every 0.5 m)."),
     scenario: list[str] = typer.Option([], help="Base scenarios (default: all but slope_weeds, held out)."),
+    wide: bool = typer.Option(False, "--wide/--narrow", help="Also draw young, whitewashed and dark bark, bare "
+                              "and sparse canopies, open backgrounds, 0.5-2.5 m distances and 1280x720 frames."),
 ) -> None:
     """Detector training data: rows with randomised bark, leaves, light, camera and trunks, as COCO."""
     from orchard_mapping.errors import OrchardMappingError
@@ -240,7 +242,7 @@ def simulate_training(
 
     try:
         path = training_scenes(out, scenes, seed, trees=trees, rate_hz=rate,
-                               bases=tuple(scenario) or TRAIN_BASE_SCENARIOS, log=lambda m: err_console.print(m))
+                               bases=tuple(scenario) or TRAIN_BASE_SCENARIOS, wide=wide, log=lambda m: err_console.print(m))
     except OrchardMappingError as err:
         raise _fail(err) from err
     console.print(f"wrote {path}")
@@ -286,6 +288,10 @@ def train_detector(
                                          "(repeat the option; with --init, FPN levels new to the checkpoint "
                                          "start from random weights)."),
     checkpoint_every: int = typer.Option(0, help="Also write the weights every N iterations (OUT.<N>.pt)."),
+    colour_jitter: str = typer.Option("narrow", help="Photometric jitter: narrow, or wide (also gamma, hue, "
+                                      "grey frames, motion blur, JPEG)."),
+    max_aspect: float = typer.Option(4 / 3, help="Widest frame aspect (long / short side) still resized to "
+                                     "--min-size on its short side; wider frames are fitted by their long side."),
 ) -> None:
     """Train the trunk/post Mask R-CNN (from scratch, or fine-tune --init) and export it to ONNX and .pt
     (needs requirements-train.lock)."""
@@ -302,14 +308,18 @@ def train_detector(
     try:
         if not 0.0 <= crop <= 1.0:
             raise ValueError(f"--crop is a share of the training images, 0 to 1, got {crop}")
+        if colour_jitter not in ("narrow", "wide"):
+            raise ValueError(f"--colour-jitter is narrow or wide, got {colour_jitter!r}")
+        if not 1.0 <= max_aspect <= 4.0:
+            raise ValueError(f"--max-aspect is a long / short side ratio, 1 to 4, got {max_aspect}")
         if min_size < 64 or any(t < 64 for t in train_size):
             raise ValueError(f"--min-size and --train-size must be at least 64 px, got {min_size} and {train_size}")
         folders = _coco_folders(data, out.parent / ".coco_cache", every)
         settings = TrainSettings(iterations=iterations, seed=seed, threads=threads,
                                  lr_scale=lr_scale if init is not None else 1.0, min_size=min_size,
-                                 max_size=long_side(min_size), train_sizes=tuple(train_size),
+                                 max_size=long_side(min_size, max_aspect), train_sizes=tuple(train_size),
                                  solid_outlines=not whole_masks, crop_prob=crop,
-                                 fpn_strides=tuple(fpn_stride))
+                                 fpn_strides=tuple(fpn_stride), colour_jitter=colour_jitter)
         card = train(folders, out, settings,
                      log=lambda m: err_console.print(m), init=init, checkpoint_every=checkpoint_every)
     except (OrchardMappingError, ValueError, FloatingPointError) as err:
@@ -327,6 +337,9 @@ def export_detector(
     min_size: Optional[int] = typer.Option(None, help="px: the model's input short side, if not as trained."),
     rpn_pre_nms: Optional[int] = typer.Option(None, help="RPN proposals kept per FPN level before its NMS."),
     rpn_post_nms: Optional[int] = typer.Option(None, help="RPN proposals kept after its NMS."),
+    max_aspect: Optional[float] = typer.Option(None, help="Widest frame aspect (long / short side) resized to "
+                                               "the input short side, if not as trained (4/3; 16/9 for "
+                                               "1280x720 frames)."),
 ) -> None:
     """Export trained weights to ONNX again with other inference settings (needs requirements-train.lock)."""
     try:
@@ -338,8 +351,12 @@ def export_detector(
         raise _fail(RuntimeError(f"export-detector needs torch and torchvision: pip install -r "
                                  f"requirements-train.lock ({err})")) from err
     overrides: dict[str, Any] = {}
-    if min_size is not None:
-        overrides.update(min_size=min_size, max_size=long_side(min_size))
+    if min_size is not None or max_aspect is not None:
+        if max_aspect is not None and not 1.0 <= max_aspect <= 4.0:
+            raise _fail(ValueError(f"--max-aspect is a long / short side ratio, 1 to 4, got {max_aspect}"))
+        short = min_size if min_size is not None else json.loads(
+            (record or weights.with_suffix(".json")).read_text())["settings"]["min_size"]
+        overrides.update(min_size=short, max_size=long_side(short, max_aspect or 4 / 3))
     if rpn_pre_nms is not None:
         overrides["rpn_pre_nms_test"] = rpn_pre_nms
     if rpn_post_nms is not None:

@@ -76,6 +76,7 @@ class StructureSpec(_S):
     weeds_per_m2: float = Field(6.0, ge=0.0)
     weed_height_m: Range = (0.05, 0.25)
     hedge_distance_m: float = Field(3.4, gt=1.5)  # neighbouring rows seen in the background
+    hedge_height_m: float = Field(2.7, gt=0.0)  # their height: low ones leave sky behind the trunks
 
 
 class CameraSpec(_S):

@@ -292,7 +292,7 @@ def build_scene(sc: Scenario, seed: int) -> Scene:
 
     # --- neighbouring rows as hedges in the background (depth and features at 3-6 m)
     hx = np.arange(x0 - row.margin_m - 3.0, x1 + row.margin_m + 3.0, 0.15)
-    hz = np.arange(0.0, 2.7, 0.15)
+    hz = np.arange(0.0, st.hedge_height_m, 0.15)
     for sgn in (-1.0, 1.0):
         HX, HZ = np.meshgrid(hx, hz)
         HY = sgn * st.hedge_distance_m + rng.normal(0, 0.05, HX.shape) * (HZ > 0.3)

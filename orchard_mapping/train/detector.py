@@ -74,11 +74,16 @@ class TrainSettings:
     # from close by).
     crop_prob: float = 0.0
     crop_min_scale: float = 0.6
+    # Photometric jitter: "narrow" (the shipped model's steps 1-8) or "wide": also gamma, hue turns, grey
+    # frames, JPEG artefacts and motion blur, for cameras and light the simulator does not draw.
+    colour_jitter: str = "narrow"
 
 
-def long_side(short_side: int) -> int:
-    """px: the network's largest long side for a short side of `short_side` (640 x 480 frames: 4/3)."""
-    return math.ceil(short_side * 4 / 3)
+def long_side(short_side: int, aspect: float = 4 / 3) -> int:
+    """px: the network's largest long side for a short side of `short_side`: frames up to `aspect` (long /
+    short side; 640 x 480: 4/3, 1280 x 720: 16/9) get their short side resized to `short_side`, wider ones
+    less."""
+    return math.ceil(short_side * aspect)
 
 
 def build_model(s: TrainSettings):
@@ -106,7 +111,7 @@ def build_model(s: TrainSettings):
     model = MaskRCNN(
         # torchvision draws a training size from min_size and predicts at its last entry
         backbone, num_classes=None, min_size=(*s.train_sizes, s.min_size),
-        max_size=max([s.max_size, *(long_side(t) for t in s.train_sizes)]),
+        max_size=max([s.max_size, *(long_side(t, s.max_size / s.min_size) for t in s.train_sizes)]),
         rpn_anchor_generator=anchors,
         box_roi_pool=MultiScaleRoIAlign(levels, 7, 2), mask_roi_pool=MultiScaleRoIAlign(levels, 14, 2),
         box_head=TwoMLPHead(c * 7 * 7, s.representation),
@@ -156,12 +161,16 @@ def random_crop(img: np.ndarray, masks: np.ndarray, rng: random.Random, min_scal
     return (np.ascontiguousarray(img[y0:y0 + ch, x0:x0 + cw]), np.ascontiguousarray(cropped[keep]), keep)
 
 
-def _augment(img: np.ndarray, masks: np.ndarray, rng: random.Random) -> tuple[np.ndarray, np.ndarray]:
-    """Photometric and geometric jitter on top of the simulator's domain randomisation."""
+def _augment(img: np.ndarray, masks: np.ndarray, rng: random.Random, wide: bool = False
+             ) -> tuple[np.ndarray, np.ndarray]:
+    """Photometric and geometric jitter on top of the simulator's domain randomisation (wide: also
+    `_wide_colour`)."""
     import cv2
 
     if rng.random() < 0.5:
         img, masks = img[:, ::-1], masks[:, :, ::-1]
+    if wide:
+        img = _wide_colour(np.ascontiguousarray(img), rng)
     x = img.astype(np.float32)
     x = x * rng.uniform(0.6, 1.4) + rng.uniform(-25, 25)  # exposure, offset
     x = x * np.array([rng.uniform(0.85, 1.15) for _ in range(3)], np.float32)  # white balance
@@ -172,6 +181,32 @@ def _augment(img: np.ndarray, masks: np.ndarray, rng: random.Random) -> tuple[np
         x = cv2.GaussianBlur(x, (k, k), 0)
     x = x + np.random.default_rng(rng.randrange(1 << 30)).normal(0, rng.uniform(0, 6), x.shape)
     return np.clip(x, 0, 255).astype(np.uint8), np.ascontiguousarray(masks)
+
+
+def _wide_colour(img: np.ndarray, rng: random.Random) -> np.ndarray:
+    """(H, W, 3) uint8 RGB with a camera's and a day's looks the simulator does not draw: a gamma curve,
+    a turn of hue, a grey frame, motion blur, JPEG compression."""
+    import cv2
+
+    x = img
+    if rng.random() < 0.5:
+        lut = (255.0 * (np.arange(256) / 255.0) ** rng.uniform(0.6, 1.6)).astype(np.uint8)
+        x = cv2.LUT(x, lut)
+    if rng.random() < 0.3:
+        hsv = cv2.cvtColor(x, cv2.COLOR_RGB2HSV)
+        hsv[..., 0] = ((hsv[..., 0].astype(np.int16) + rng.randint(-8, 8)) % 180).astype(np.uint8)  # +-16 deg
+        x = cv2.cvtColor(hsv, cv2.COLOR_HSV2RGB)
+    if rng.random() < 0.1:
+        x = np.repeat(cv2.cvtColor(x, cv2.COLOR_RGB2GRAY)[..., None], 3, axis=2)
+    if rng.random() < 0.15:
+        k = rng.choice([5, 7, 9])
+        kernel = np.zeros((k, k), np.float32)
+        kernel[k // 2, :] = 1.0 / k  # along the image rows: the camera moves along the row
+        x = cv2.filter2D(x, -1, kernel)
+    if rng.random() < 0.3:
+        ok, buf = cv2.imencode(".jpg", x, [cv2.IMWRITE_JPEG_QUALITY, rng.randint(30, 90)])
+        x = cv2.imdecode(buf, cv2.IMREAD_UNCHANGED)
+    return x
 
 
 def _target(item: CocoImage, rng: random.Random, s: TrainSettings):
@@ -187,7 +222,7 @@ def _target(item: CocoImage, rng: random.Random, s: TrainSettings):
     if s.crop_prob > 0 and rng.random() < s.crop_prob:
         img, masks, kept = random_crop(img, masks, rng, s.crop_min_scale)
         classes = classes[kept]
-    img, masks = _augment(img, masks, rng)
+    img, masks = _augment(img, masks, rng, wide=s.colour_jitter == "wide")
     boxes = []
     for m in masks:
         v, u = np.nonzero(m)

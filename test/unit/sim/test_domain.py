@@ -1,0 +1,52 @@
+"""Domain randomisation of the detector's training scenes (orchard_mapping.sim.domain)."""
+
+import numpy as np
+import pytest
+
+from orchard_mapping.sim.domain import random_domain, wide_domain
+from orchard_mapping.sim.scenario import load_scenario
+
+
+@pytest.mark.parametrize("seed", range(5))
+def test_wide_draws_leave_the_narrow_draws_of_a_seed_as_they_were(seed):
+    # the training sets simulated before the wide looks existed must come out of the same commands again
+    narrow = random_domain(np.random.default_rng([seed, 3]))
+    wide = random_domain(np.random.default_rng([seed, 3]), wide=True)
+    overridable = set().union(*(wide_domain(np.random.default_rng(k)) for k in range(200)))
+    assert {"appearance.bark_rgb", "canopy.leaves_per_m3", "camera.width"} <= overridable
+    for key, value in narrow.items():
+        assert wide[key] == value or key in overridable, key
+    assert sum(wide[k] != narrow.get(k) for k in wide) >= 4  # and the wide look is another look
+
+
+def test_wide_draws_give_valid_scenarios_and_cover_what_real_orchards_show():
+    looks = [random_domain(np.random.default_rng([7, k]), wide=True) for k in range(300)]
+    for over in looks[:40]:
+        load_scenario("standard", over)  # every draw is a scenario the simulator accepts
+    bark = np.array([o["appearance.bark_rgb"] for o in looks])  # (300, 3)
+    lightness = bark.mean(axis=1)
+    assert (lightness > 0.75).mean() > 0.05  # whitewashed trunks
+    assert ((lightness > 0.45) & (lightness < 0.75)).mean() > 0.2  # young light-grey bark
+    assert (lightness < 0.2).mean() > 0.05  # old dark bark
+    leaves = np.array([o["canopy.leaves_per_m3"] for o in looks])
+    assert 0.15 < (leaves < 200).mean() < 0.35  # dormant rows, and no fruit on them
+    assert all(o["fruit.per_tree"] == [0, 0] for o in looks if o["canopy.leaves_per_m3"] < 200)
+    distance = np.array([o["path.distance_m"] for o in looks])
+    assert distance.min() < 0.7 and distance.max() > 2.3
+    wide_frames = [o for o in looks if o.get("camera.width") == 1280]
+    assert 0.2 < len(wide_frames) / len(looks) < 0.4
+    assert all(o["camera.height"] == 720 and abs(o["camera.cx"] - 639.5) < 1e-9 for o in wide_frames)
+    hedge = np.array([o["structure.hedge_height_m"] for o in looks])
+    assert (hedge < 1.2).mean() > 0.1  # low neighbouring rows: sky behind the trunks
+
+
+def test_a_low_hedge_is_built_to_its_height():
+    from orchard_mapping.sim.scene import Cls, build_scene
+
+    heights = {}
+    for h in (0.9, 2.7):
+        sc = load_scenario("standard", {"row.n_trees": 1, "structure.hedge_height_m": h})
+        scene = build_scene(sc, 0)
+        hedge = scene.vertices[np.unique(scene.triangles[scene.tri_cls == Cls.HEDGE])]
+        heights[h] = float(np.percentile(hedge[:, 2] - scene.terrain.height(hedge[:, 0], hedge[:, 1]), 99))
+    assert heights[0.9] < 0.95 and heights[2.7] > 2.4
