@@ -93,3 +93,125 @@ def test_the_splitter_reads_labels_on_topic_and_a_label_change_ends_the_side():
     assert SideSplitter("topic", default_side="back").side() == "back"
     with pytest.raises(ValueError, match="side label"):
         split.on_label("left")
+
+
+# --------------------------------------------------------------------------- a block: row after row
+
+
+def _block_drive(rows: int, *, spacing: float = 3.4, distance: float = 1.25, length: float = 4.0,
+                 step: float = 0.05, tilt_deg: float = 0.0, sway_deg: float = 0.0, looks: str = "left",
+                 end_after_front: bool = False, rng: np.random.Generator | None = None):
+    """World camera poses of a serpentine drive along `rows` rows (row k's trunks on y = k * spacing, x in
+    [0, length]): row k's front side (y = y_k - distance, looking at +y), a half circle round the row end, its
+    back side (y_k + distance, looking at -y), then a half circle in the headland into the same alley the other
+    way round, to row k + 1's front side. looks "left": the camera looks left of the way it goes (the drive
+    goes along +x on the front sides); "right": it looks right (along -x on the front sides). Each frame's
+    true (row, side), half of each turn to the side before it and half to the one after."""
+    rng = rng or np.random.default_rng(0)
+
+    def cam(look_yaw: float, pos) -> np.ndarray:
+        look = np.array([np.cos(look_yaw), np.sin(look_yaw), 0.0])
+        R = np.column_stack([np.cross(look, [0, 0, 1.0]), [0, 0, -1.0], look])
+        R = R @ Rotation.from_euler("x", -tilt_deg, degrees=True).as_matrix()
+        T = np.eye(4)
+        T[:3, :3], T[:3, 3] = R, pos
+        return T
+
+    def sway() -> float:
+        return np.radians(rng.normal(0, sway_deg)) if sway_deg else 0.0
+
+    sgn = 1.0 if looks == "left" else -1.0  # the front sides are driven along sgn * x
+    x_start, x_end = (0.0, length) if sgn > 0 else (length, 0.0)
+    poses, truth = [], []
+
+    def straight(y: float, x0: float, x1: float, look_yaw: float, label) -> None:
+        for x in np.arange(x0, x1, step * np.sign(x1 - x0)):
+            poses.append(cam(look_yaw + sway(), [x, y, 1.0]))
+            truth.append(label)
+
+    def half_circle(centre, radius: float, a0: float, turn: float, look_of, before, after) -> None:
+        n = max(6, int(round(np.pi * radius / step)))
+        for k, a in enumerate(np.linspace(0.0, np.pi, n + 2)[1:-1]):
+            ang = a0 + turn * a
+            poses.append(cam(look_of(ang) + sway(), [centre[0] + radius * np.cos(ang), centre[1] + radius * np.sin(ang), 1.0]))
+            truth.append(before if k < n // 2 else after)
+
+    for r in range(rows):
+        y = r * spacing
+        straight(y - distance, x_start, x_end, np.pi / 2, (r + 1, "front"))
+        if end_after_front and r == rows - 1:
+            break
+        # round the row end: the camera keeps looking at the centre of the turn (the row end)
+        half_circle((x_end, y), distance, -np.pi / 2, sgn, lambda a: a + np.pi, (r + 1, "front"), (r + 1, "back"))
+        straight(y + distance, x_end, x_start, -np.pi / 2, (r + 1, "back"))
+        if r == rows - 1:
+            break
+        # into the same alley the other way round: the camera looks out of the turn, away from its centre
+        half_circle((x_start, y + spacing / 2), spacing / 2 - distance, -np.pi / 2, -sgn,
+                    lambda a: a, (r + 1, "back"), (r + 2, "front"))
+    return poses, truth
+
+
+def _split(poses):
+    """(row, side) per frame by UTurnSides, each pose given in its side's odom frame (a side's reconstruction
+    starts at its first camera), and the turns it read."""
+    det = UTurnSides()
+    origin, got = None, []
+    for T in poses:
+        origin = T if origin is None else origin
+        got.append((det.row, det.side))
+        if det.update(np.linalg.inv(origin) @ T):
+            origin = None
+    return got, det.turns
+
+
+def _changes(labels):
+    return [i for i in range(1, len(labels)) if labels[i] != labels[i - 1]]
+
+
+@pytest.mark.parametrize("looks, tilt_deg, sway_deg", [("left", 0, 0), ("right", 0, 0), ("left", 20, 2),
+                                                        ("right", -10, 2)])
+def test_a_block_drive_is_cut_into_rows_and_sides_at_its_turns(looks, tilt_deg, sway_deg):
+    poses, truth = _block_drive(3, looks=looks, tilt_deg=tilt_deg, sway_deg=sway_deg)
+    got, turns = _split(poses)
+    # every pass named as driven: rows 1-3, each its front side then its back side
+    order = [got[0]] + [got[i] for i in _changes(got)]
+    assert order == [(1, "front"), (1, "back"), (2, "front"), (2, "back"), (3, "front"), (3, "back")]
+    # and cut half way round each turn, within 3 frames of the truth (2.3 deg a frame round a row end: the sway
+    # drawn afresh each frame moves the cut by a frame or two)
+    assert len(_changes(got)) == len(_changes(truth)) == 5
+    for g, t in zip(_changes(got), _changes(truth), strict=True):
+        assert abs(g - t) <= 3, (g, t)
+    # the turns round a row end went towards the row, those into the next row away from it
+    assert [t.next_row for t in turns] == [False, True, False, True, False]
+    assert all(t.back_m < -0.8 for t in turns if not t.next_row)
+    assert all(t.back_m > 0.3 for t in turns if t.next_row)
+
+
+def test_a_row_driven_along_one_side_only_ends_the_drive_on_its_front():
+    poses, truth = _block_drive(2, end_after_front=True)
+    got, turns = _split(poses)
+    assert got[-1] == (2, "front") and [t.next_row for t in turns] == [False, True]
+
+
+def test_a_camera_swung_the_other_way_round_the_row_end_still_goes_to_the_back_side():
+    """A hand-held camera may be turned either way while its carrier walks round the row end: where the camera
+    went (across the row it filmed) tells the side, not which way it turned (test above: `turn_sign` -1)."""
+    poses, _ = _drive(-1, 0, 0, np.random.default_rng(0))
+    got, turns = _split(poses)
+    assert got[-1] == (1, "back") and len(turns) == 1 and not turns[0].next_row
+
+
+def test_the_splitter_says_the_row():
+    from orchard_mapping.core.sides import SideSplitter
+
+    poses, truth = _block_drive(2)
+    split = SideSplitter("trajectory")
+    origin, got = None, []
+    for T in poses:
+        origin = T if origin is None else origin
+        got.append((split.row(), split.side()))
+        if split.after_pose(np.linalg.inv(origin) @ T):
+            origin = None
+    assert got[0] == (1, "front") and got[-1] == (2, "back") and len(split.turns()) == 3
+    assert SideSplitter("topic", default_side="front").row() == 1
