@@ -574,6 +574,9 @@ class Timings:
     # s, the run's wall clock: less than the stages' sum where stages overlap (the trunk detector's thread beside
     # the front end, a side's trunk modelling in a worker process); None in files from before it was written
     wall_s: float | None = None
+    # s per step of the merge (alignment, initial_transform, semantic_ba): a breakdown of the `merge` stage, kept
+    # here and not in side_merge.json, so that every file but this one is the same on every run of a recording
+    merge_steps: Mapping[str, float] = dataclasses.field(default_factory=dict)
 
     @property
     def total_s(self) -> float:
@@ -587,7 +590,7 @@ class Timings:
 
 def write_timings(
     path: str | Path, stages: Mapping[str, float], frames: int | None = None, recording_duration_s: float | None = None,
-    wall_s: float | None = None,
+    wall_s: float | None = None, merge_steps: Mapping[str, float] | None = None,
 ) -> Path:
     """Write timings.json (validated first)."""
     path = Path(path)
@@ -598,6 +601,8 @@ def write_timings(
     }
     if wall_s is not None:
         doc["wall_s"] = float(wall_s)
+    if merge_steps:
+        doc["merge_steps"] = {str(k): float(v) for k, v in merge_steps.items()}
     _timings_from_document(json.loads(_dumps(doc, path)), path)
     return atomic_write_json(path, doc)
 
@@ -609,7 +614,10 @@ def _timings_from_document(doc: Any, path: Path) -> Timings:
     frames = as_integer(d.get("frames"), path, "frames", nullable=True, minimum=0)
     rec = as_number(d.get("recording_duration_s"), path, "recording_duration_s", nullable=True, minimum=0.0)
     wall = as_number(d.get("wall_s"), path, "wall_s", nullable=True, minimum=0.0)
-    return Timings(stages=parsed, frames=frames, recording_duration_s=rec, wall_s=wall)  # type: ignore[arg-type]
+    steps = as_mapping(d.get("merge_steps") or {}, path, "merge_steps")
+    merge_steps = {str(k): as_number(v, path, f"merge_steps.{k}", minimum=0.0) for k, v in steps.items()}
+    return Timings(stages=parsed, frames=frames, recording_duration_s=rec, wall_s=wall,  # type: ignore[arg-type]
+                   merge_steps=merge_steps)  # type: ignore[arg-type]
 
 
 def read_timings(path: str | Path) -> Timings:

@@ -118,7 +118,7 @@ def write_merge(out: Path, m: MergeOutcome, sides: dict[str, SideMap],
     if al is not None:
         overlap["x_range_m"] = list(al.overlap_m)
     write_side_merge(out / SIDE_MERGE_JSON, m.T_front_back, method=m.method, residuals=residuals,
-                     overlap=overlap, alignment_log=al.log if al is not None else [], seconds=m.seconds, **extra)
+                     overlap=overlap, alignment_log=al.log if al is not None else [], **extra)
     poses = map_poses(m, sides)
     for side, P in poses.items():  # (K, 4, 4) T_map_cam
         write_tum(out / map_trajectory_filename(side), StampedTrajectory(

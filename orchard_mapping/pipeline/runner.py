@@ -104,6 +104,7 @@ def _run(front: Path, back: Path | None, out: Path, cfg: OrchardConfig, progress
                     log.warning("side merge refused: %s (no side_merge.json written)", err)
                     refused = str(err)
                 else:
+                    timings.merge_steps = dict(merged.seconds)
                     write_merge(out, merged, sides, clouds, trees)
                     write_trees(out, trees, frame="map")
                     write_tree_cloud(out, labels, trees)
@@ -114,6 +115,7 @@ def _run(front: Path, back: Path | None, out: Path, cfg: OrchardConfig, progress
             worker.close()
     timings.wall_s = time.perf_counter() - t_start
     write_timings(out / "timings.json", timings.stages, frames=timings.frames,
-                  recording_duration_s=timings.recording_duration_s, wall_s=timings.wall_s)
+                  recording_duration_s=timings.recording_duration_s, wall_s=timings.wall_s,
+                  merge_steps=timings.merge_steps)
     atomic_write_text(out / "config.effective.yaml", dump_yaml(cfg))
     return RunResult(out, sides, timings, refused)

@@ -31,6 +31,7 @@ class Timings:
     recording_duration_s: float = 0.0
     # s, the run's wall clock (stages overlap: the detector's thread, the trunk worker); None until it is over
     wall_s: float | None = None
+    merge_steps: dict[str, float] = field(default_factory=dict)  # s per step of the `merge` stage
 
     def add(self, stage: str, seconds: float) -> None:
         self.stages[stage] = self.stages.get(stage, 0.0) + seconds

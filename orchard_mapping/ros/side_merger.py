@@ -149,8 +149,9 @@ class SideMergerNode(Node):
         if out:
             self._write(Path(out), merged, clouds, labels, trees)
         self._publish(merged, clouds, trees)
+        steps = ", ".join(f"{k} {v:.2f} s" for k, v in merged.seconds.items())  # not in side_merge.json
         self.get_logger().info(f"merged ({merged.method}) on {len(merged.pairs)} trunk pairs in "
-                               f"{self.seconds[-1]:.2f} s: {len(trees)} trees")
+                               f"{self.seconds[-1]:.2f} s ({steps}): {len(trees)} trees")
 
     def _write(self, out: Path, merged: MergeOutcome, clouds: dict[str, np.ndarray], labels: RowLabels,
                trees: list) -> None:

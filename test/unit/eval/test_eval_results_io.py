@@ -148,12 +148,19 @@ def test_side_merge_and_timings_round_trip(tmp_path: Path) -> None:
     # stages that overlap (a worker process) sum to more than the wall clock, which the file then gives
     R.write_timings(tmp_path / "timings.json", {"odometry": 1.5, "trunks": 0.5}, recording_duration_s=2.0, wall_s=1.6)
     tm = R.read_timings(tmp_path)
-    assert tm.total_s == 2.0 and tm.wall_s == 1.6 and tm.elapsed_s == 1.6
+    assert tm.total_s == 2.0 and tm.wall_s == 1.6 and tm.elapsed_s == 1.6 and dict(tm.merge_steps) == {}
+    # the merge's steps: a breakdown of its stage, not more stages (the sum stays)
+    R.write_timings(tmp_path / "timings.json", {"merge": 0.25}, merge_steps={"alignment": 0.125, "semantic_ba": 0.0625})
+    tm = R.read_timings(tmp_path)
+    assert dict(tm.merge_steps) == {"alignment": 0.125, "semantic_ba": 0.0625} and tm.total_s == 0.25
     (tmp_path / "timings.json").write_text(json.dumps({"stages": {"odometry": 1}, "wall_s": -2}))
     with pytest.raises(ResultFormatError, match=r"field 'wall_s'"):
         R.read_timings(tmp_path)
     (tmp_path / "timings.json").write_text(json.dumps({"stages": {"odometry": -1}}))
     with pytest.raises(ResultFormatError, match=r"field 'stages\.odometry'"):
+        R.read_timings(tmp_path)
+    (tmp_path / "timings.json").write_text(json.dumps({"stages": {}, "merge_steps": {"alignment": "1 s"}}))
+    with pytest.raises(ResultFormatError, match=r"field 'merge_steps\.alignment'"):
         R.read_timings(tmp_path)
 
 
