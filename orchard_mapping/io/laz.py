@@ -5,13 +5,15 @@ the canopy, 14 wire for the trellis wires) and the project's own codes in the us
 post, fruit (CLASS below; docs/results.md). Two extra dimensions: `tree_id` (int32, -1: no tree) and `side`
 (uint8, 0 front, 1 back: the side whose camera saw the point). Coordinates are the map frame of
 trees.json (m; the front side's odom frame): a local frame with no CRS, named in the header's system
-identifier, at 0.1 mm resolution. CloudCompare, PDAL and lidR open it as any LAZ file.
+identifier, at 0.1 mm resolution. The header's creation day is the recording's (UTC), not the day the file was
+written, so the same recording gives the same bytes. CloudCompare, PDAL and lidR open it as any LAZ file.
 """
 
 from __future__ import annotations
 
 import os
 import tempfile
+from datetime import datetime, timezone
 from pathlib import Path
 
 import numpy as np
@@ -33,11 +35,12 @@ class LazWriteError(OrchardMappingError):
 
 
 def write_laz(path: str | Path, points: np.ndarray, colors: np.ndarray, classification: np.ndarray,
-              tree_id: np.ndarray, side: np.ndarray) -> Path:
+              tree_id: np.ndarray, side: np.ndarray, recorded_s: float = 0.0) -> Path:
     """Write trees.laz atomically (a temporary file renamed into place).
 
     points (N, 3) float m, map frame; colors (N, 3) uint8 RGB; classification (N,) uint8 (CLASS values);
-    tree_id (N,) int (-1: none); side (N,) uint8 (SIDE_CODE values)."""
+    tree_id (N,) int (-1: none); side (N,) uint8 (SIDE_CODE values); recorded_s: a stamp of the recording,
+    s since the epoch (its UTC day is the header's creation day)."""
     import laspy
 
     path = Path(path)
@@ -54,6 +57,8 @@ def write_laz(path: str | Path, points: np.ndarray, colors: np.ndarray, classifi
     header = laspy.LasHeader(point_format=7, version="1.4")
     header.system_identifier = SYSTEM_ID
     header.generating_software = "orchard_mapping"
+    # laspy would write today's date: the recording's day keeps the file the same on every run of it
+    header.creation_date = datetime.fromtimestamp(float(recorded_s), timezone.utc).date()
     header.scales = np.full(3, LAZ_SCALE_M)
     header.offsets = np.floor(pts.min(axis=0)) if n else np.zeros(3)
     header.add_extra_dims([laspy.ExtraBytesParams(name="tree_id", type=np.int32, description="tree of trees.json"),

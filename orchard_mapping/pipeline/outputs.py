@@ -171,7 +171,8 @@ def write_fruit_csv(path: Path, fruit: TreeFruit) -> None:
 def write_tree_cloud(out: Path, labels: RowLabels, trees: list[ResultTree] | None = None) -> None:
     """trees.laz: the merged cloud with each point's tree and class (io.laz), and with `trees`,
     trees/<id>.png: each tree's points from the front and the side (docs/results.md)."""
-    write_laz(out / TREES_LAZ, labels.points, labels.colors, labels.classification, labels.tree_id, labels.side)
+    write_laz(out / TREES_LAZ, labels.points, labels.colors, labels.classification, labels.tree_id, labels.side,
+              recorded_s=labels.recorded_s)
     if labels.fruit is not None:
         write_fruit_csv(out / FRUIT_CSV, labels.fruit)
     for t in trees or []:

@@ -62,6 +62,7 @@ class RowLabels:
     classification: np.ndarray  # (N,) uint8, io.laz.CLASS
     R_row_map: np.ndarray = field(default_factory=lambda: np.eye(3))  # (3, 3) rows: the row frame's x, y, z in map
     fruit: TreeFruit | None = None  # the row's fruit, each once, with its tree (None: no fruit stage)
+    recorded_s: float = 0.0  # s since the epoch: the recording's first keyframe (trees.laz's creation day)
 
 
 def _tree_landmarks(trees: list[ResultTree], sides: dict[str, SideMap]) -> Iterator[tuple[int, str, TrunkLandmark]]:
@@ -136,8 +137,9 @@ def measure_trees(merged: MergeOutcome, sides: dict[str, SideMap], clouds: dict[
     pts = np.concatenate([clouds["front"], clouds["back"]])  # (N, 3) map
     colors = np.concatenate([sides["front"].cloud_colors, sides["back"].cloud_colors])
     side = np.repeat([SIDE_CODE["front"], SIDE_CODE["back"]], [len(clouds["front"]), len(clouds["back"])])
+    recorded_s = float(min(sm.keyframe_stamps[0] for sm in sides.values() if len(sm.keyframe_stamps)))
     none = RowLabels(pts, colors, side.astype(np.uint8), np.full(len(pts), -1, np.int32),
-                     np.full(len(pts), CLASS["none"], np.uint8))
+                     np.full(len(pts), CLASS["none"], np.uint8), recorded_s=recorded_s)
     if not trees or not len(pts):
         return trees, none
     up = side_up_direction(np.concatenate(list(poses.values())))  # both sides' cameras in map
@@ -209,7 +211,7 @@ def measure_trees(merged: MergeOutcome, sides: dict[str, SideMap], clouds: dict[
         out, fruit = measure_fruit(sides, poses, out, pts, tree_id, feet, normals, cfg.fruit)
         if fruit is not None:
             cls[fruit_points(pts, fruit.row)] = CLASS["fruit"]
-    return out, RowLabels(pts, colors, side.astype(np.uint8), tree_id, cls, R, fruit)
+    return out, RowLabels(pts, colors, side.astype(np.uint8), tree_id, cls, R, fruit, recorded_s)
 
 
 def _intervals(values: dict[str, float | None], flags: list[str], spread: dict[str, float]

@@ -43,6 +43,19 @@ def test_the_header_names_the_local_frame_and_no_crs(tmp_path):
     assert las.header.version.major == 1 and las.header.version.minor == 4
 
 
+def test_the_creation_day_is_the_recordings_not_todays(tmp_path):
+    """The header's creation day comes from the recording's stamp (UTC), so the same recording gives the same
+    bytes on any day (laspy writes today's date unless told)."""
+    import datetime
+
+    import laspy
+
+    pts, cols, cls, tree, side = _cloud(10, 4)
+    a = write_laz(tmp_path / "a.laz", pts, cols, cls, tree, side, recorded_s=1700000000.0)  # 2023-11-14 22:13 UTC
+    assert laspy.read(str(a)).header.creation_date == datetime.date(2023, 11, 14)
+    assert write_laz(tmp_path / "b.laz", pts, cols, cls, tree, side, recorded_s=1700000000.0).read_bytes() == a.read_bytes()
+
+
 def test_arrays_that_disagree_are_named(tmp_path):
     pts, cols, cls, tree, side = _cloud(10, 3)
     with pytest.raises(LazWriteError, match="tree_id has shape"):
