@@ -17,7 +17,8 @@ row it was looking at; the turn into the next row takes it back, away from that 
 apart by where the camera went between the start of the turn and half way round it, along the direction it
 looked along the side (not by which way it turned: a hand-held camera may be swung either way round the row
 end): a turn that moved it back from that row by more than `away_m` starts the next row (its front side);
-any other is the U-turn to the other side of the same row.
+any other is the U-turn to the other side of the same row. A drive goes along each side of a row once, so
+after a row's second side every turn leads to the next row.
 """
 
 from __future__ import annotations
@@ -93,7 +94,9 @@ class UTurnSides:
             return False
         # where the camera went since the turn began, along the direction it looked along the side
         back_m = -float((self._ref.T @ (p - self._start))[2])
-        next_row = back_m > self.away_m
+        # A drive goes along each side of a row once: after a row's second side every turn leads on to the next
+        # row, whatever it measured (a turn whose tracking was lost part of the way is measured badly).
+        next_row = back_m > self.away_m or self.side != self.first_side
         self.turns.append(Turn(self.row, self.side, float(np.degrees(angle)), back_m, next_row))
         half = Rotation.from_rotvec(np.pi * turned / angle).as_matrix()  # half a turn about the same axis
         self._carry = R.T @ (self._ref @ half)  # the next side's reference against its first frame (~ this one)

@@ -215,3 +215,20 @@ def test_the_splitter_says_the_row():
             origin = None
     assert got[0] == (1, "front") and got[-1] == (2, "back") and len(split.turns()) == 3
     assert SideSplitter("topic", default_side="front").row() == 1
+
+
+def test_after_a_rows_second_side_every_turn_leads_to_the_next_row():
+    """A turn measured badly (its tracking lost part of the way: no move away from the row seen) after a row's
+    back side still starts the next row: a drive goes along each side of a row once."""
+    poses, _ = _block_drive(2)
+    got, turns = _split(poses)
+    assert turns[1].next_row
+    det = UTurnSides()
+    det.side = "back"  # on row 1's back side
+    R = poses[0][:3, :3]
+    for a in np.radians(np.arange(0, 181, 5)):  # a turn on the spot: the camera never moves
+        T = np.eye(4)
+        T[:3, :3] = Rotation.from_rotvec([0, 0, a]).as_matrix() @ R
+        if det.update(T):
+            break
+    assert (det.row, det.side) == (2, "front") and abs(det.turns[0].back_m) < 1e-9
