@@ -121,10 +121,22 @@ class MotionSpec(_S):
     bump_decay_s: float = Field(0.25, gt=0.0)  # time constant of the suspension's damping
 
 
+class BlockSpec(_S):
+    """Parallel rows (a block of an orchard); one row unless said."""
+
+    rows: int = Field(1, ge=1, le=20)  # along +y, each with row.n_trees trees of its own
+    row_spacing_m: float = Field(3.4, gt=1.0)  # trunk line to trunk line
+    # m beyond the path's turns at both ends of the block, a hedge across the row ends (0: none): a turn in the
+    # headland looks out of the block, at it, rather than into empty sky
+    headland_m: float = Field(0.0, ge=0.0)
+
+
 class PathSpec(_S):
     # two_sweep: level sweep at trunk height, back along the side with the camera raised and tilted down
     # single_pass: one level sweep per side (trunks only); loop: one drive around the row, one bag
-    mode: Literal["two_sweep", "single_pass", "loop"] = "two_sweep"
+    # block: one drive along both sides of every row of the block (a loop round each row, a turn into the same
+    # alley the other way round between them), one bag
+    mode: Literal["two_sweep", "single_pass", "loop", "block"] = "two_sweep"
     distance_m: float = Field(1.25, gt=0.3)  # camera to trunk line
     low_height_m: float = Field(0.62, gt=0.0)  # camera above ground, level sweep (sees ~0.15-1.1 m)
     # Raised sweep (camera on a stick): from 1.5 m at 3 m height, tilted down 35 deg, the view spans the trunk
@@ -191,6 +203,7 @@ class Scenario(_S):
     structure: StructureSpec = StructureSpec()
     camera: CameraSpec = CameraSpec()
     path: PathSpec = PathSpec()
+    block: BlockSpec = BlockSpec()
     wind: WindSpec = WindSpec()
     appearance: AppearanceSpec = AppearanceSpec()
     masks_every: int = Field(1, ge=0)  # write an instance mask every n-th frame (0 = none)
@@ -203,6 +216,11 @@ class Scenario(_S):
             raise ValueError("trunk.diameter_mean_m must lie in [diameter_min_m, diameter_max_m]")
         if not 0.0 <= t.ellipticity[0] <= t.ellipticity[1] < 0.5:
             raise ValueError("trunk.ellipticity must satisfy 0 <= low <= high < 0.5")
+        if self.path.mode == "block" and self.block.row_spacing_m < 2 * self.path.distance_m + 0.3:
+            # the turn from a row's back side into the next row's front side is made in the alley between them
+            raise ValueError(f"block.row_spacing_m ({self.block.row_spacing_m} m) must leave room for the turn "
+                             f"between two rows' camera lines: at least 2 x path.distance_m + 0.3 m "
+                             f"({2 * self.path.distance_m + 0.3:.2f} m)")
         for key in ("front_span", "back_span"):
             a, b = getattr(self.path, key)
             if not 0.0 <= a < b <= 1.0:

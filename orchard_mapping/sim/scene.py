@@ -116,7 +116,18 @@ class Scene:
     trees: list[TreeGeom]
     fruit: list[Fruit]
     posts: list[dict]
-    row_x: tuple[float, float]  # x of the first and last trunk
+    row_x: tuple[float, float]  # x of the first and last trunk (of the first row)
+    rows: tuple["RowLine", ...] = ()  # every row of the scene (one, or a block's)
+
+
+@dataclass(frozen=True)
+class RowLine:
+    """One row of a scene: its trunk line on y = y (world), from x[0] to x[1] (first and last trunk)."""
+
+    number: int  # 1, 2, ...: the order of the rows along +y
+    y: float  # m
+    x: tuple[float, float]  # m
+    tree_ids: tuple[int, ...]
 
 
 # ----------------------------------------------------------------------------- primitives
@@ -202,20 +213,17 @@ def _canopy_profile(u: np.ndarray) -> np.ndarray:
     return np.clip(1.15 * (1.0 - u) ** 0.75 * np.minimum(1.0, 0.45 + 2.2 * u), 0.0, 1.0)
 
 
-def build_scene(sc: Scenario, seed: int) -> Scene:
-    rng = np.random.default_rng(seed)
-    row, st = sc.row, sc.structure
-    ap = sc.appearance
-    mb = MeshBuilder()
+_ROW_STREAM = 0x726F77  # the draws of a block's rows after the first: (seed, this, row index)
 
-    # --- tree positions along the row
+
+def _tree_xy(rng: np.random.Generator, row) -> tuple[np.ndarray, np.ndarray]:
+    """x (along the row, the first trunk at 0) and y offsets (across it) of a row's trunks."""
     n = row.n_trees
     gaps = row.spacing_m + rng.uniform(-1, 1, n - 1) * row.spacing_jitter_m if n > 1 else np.zeros(0)
-    xs = np.concatenate([[0.0], np.cumsum(gaps)])
-    ys = rng.uniform(-1, 1, n) * row.offset_jitter_m
-    x0, x1 = float(xs[0]), float(xs[-1])
+    return np.concatenate([[0.0], np.cumsum(gaps)]), rng.uniform(-1, 1, n) * row.offset_jitter_m
 
-    # --- terrain
+
+def _terrain(rng: np.random.Generator, row) -> Terrain:
     m = 5
     ang = rng.uniform(0, 2 * np.pi, m)
     wl = row.undulation_wavelength_m * rng.uniform(0.7, 1.4, m)
@@ -225,82 +233,83 @@ def build_scene(sc: Scenario, seed: int) -> Scene:
     ang_r = rng.uniform(0, 2 * np.pi, m_r)
     k_r = np.stack([np.cos(ang_r), np.sin(ang_r)], 1) * (2 * np.pi / rng.uniform(0.12, 0.35, m_r))[:, None]
     a_r = row.roughness_m * rng.uniform(0.5, 1.0, m_r) / np.sqrt(m_r / 2)
-    terrain = Terrain(
+    return Terrain(
         slope=float(np.tan(np.radians(row.slope_deg))),
         cross=float(np.tan(np.radians(row.cross_slope_deg))),
         wave_k=np.vstack([k_und, k_r]),
         wave_a=np.concatenate([a_und, a_r]),
         wave_phase=rng.uniform(0, 2 * np.pi, m + m_r),
     )
-    gx = np.arange(x0 - row.margin_m - 3.0, x1 + row.margin_m + 3.0, 0.08)
-    gy = np.arange(-st.hedge_distance_m - 0.4, st.hedge_distance_m + 0.4, 0.08)
+
+
+def build_scene(sc: Scenario, seed: int) -> Scene:
+    """The scenario's row (or, with block.rows > 1, its block of parallel rows) as one mesh.
+
+    A block's first row is drawn exactly as a row alone is (same seed, same row); each further row, on
+    y = k * block.row_spacing_m, draws its trees, posts and weeds from a stream of its own, so that adding a row
+    changes none of the others. The ground and the hedges span the whole block."""
+    rng = np.random.default_rng(seed)
+    row, st, blk = sc.row, sc.structure, sc.block
+    mb = MeshBuilder()
+
+    # --- tree positions along each row, the terrain
+    row_rngs = [rng] + [np.random.default_rng([seed, _ROW_STREAM, k]) for k in range(1, blk.rows)]
+    xy = [_tree_xy(rng, row)]
+    terrain = _terrain(rng, row)
+    xy += [_tree_xy(r, row) for r in row_rngs[1:]]
+    row_y = [k * blk.row_spacing_m for k in range(blk.rows)]
+    x_lo = min(float(xs[0]) for xs, _ in xy) - row.margin_m
+    x_hi = max(float(xs[-1]) for xs, _ in xy) + row.margin_m
+    apron = max(3.0, blk.headland_m + 0.5)  # ground beyond the path's ends (to the headland hedge, if any)
+    gx = np.arange(x_lo - apron, x_hi + apron, 0.08)
+    gy = np.arange(-st.hedge_distance_m - 0.4, row_y[-1] + st.hedge_distance_m + 0.4, 0.08)
     gz = terrain.height(*np.meshgrid(gx, gy))
     v, t = grid_mesh(gx, gy, gz)
     mb.add(v, t, Cls.GROUND, -1, (0.42, 0.34, 0.24))
 
     trees: list[TreeGeom] = []
     fruits: list[Fruit] = []
+    posts: list[dict] = []
+    rows: list[RowLine] = []
     sphere_v, sphere_t = uv_sphere()
-    for i in range(n):
-        # The trunk's cross-section (ellipse, bark) draws from a stream of its own: a row with elliptical
-        # trunks is otherwise the same row (same canopies, fruit, weeds), so the two compare tree by tree.
-        shape_rng = np.random.default_rng([seed, _TRUNK_SHAPE_STREAM, i])
-        trees.append(_build_tree(mb, rng, sc, i, np.array([xs[i], ys[i]]), terrain, fruits, sphere_v, sphere_t,
-                                 shape_rng))
+    for k, (r_rng, (xs, ys), y0) in enumerate(zip(row_rngs, xy, row_y, strict=True)):
+        first = len(trees)
+        for i in range(len(xs)):
+            # The trunk's cross-section (ellipse, bark) draws from a stream of its own: a row with elliptical
+            # trunks is otherwise the same row (same canopies, fruit, weeds), so the two compare tree by tree.
+            tid = len(trees)
+            shape_rng = np.random.default_rng([seed, _TRUNK_SHAPE_STREAM, tid])
+            trees.append(_build_tree(mb, r_rng, sc, tid, np.array([xs[i], y0 + ys[i]]), terrain, fruits, sphere_v,
+                                     sphere_t, shape_rng))
+        _posts_and_wires(mb, r_rng, sc, xs, y0, terrain, posts)
+        _weeds(mb, r_rng, sc, float(xs[0]), float(xs[-1]), y0, terrain)
+        rows.append(RowLine(k + 1, y0, (float(xs[0]), float(xs[-1])), tuple(range(first, len(trees)))))
 
-    # --- posts and wire
-    post_x = [x0 - 0.5 * row.spacing_m, x1 + 0.5 * row.spacing_m]
-    if st.post_every_n_trees > 0:
-        post_x += [0.5 * (xs[k] + xs[k + 1]) for k in range(st.post_every_n_trees - 1, n - 1, st.post_every_n_trees)]
-    posts = []
-    for j, px in enumerate(sorted(post_x)):
-        pz = float(terrain.height(px, 0.0))
-        s = np.linspace(-0.2, st.post_height_m, 30)
-        c = np.stack([np.full_like(s, px), np.zeros_like(s), pz + s], 1)
-        v, t = tube(c, np.full(len(s), st.post_diameter_m / 2), 16)
-        mb.add(v, t, Cls.POST, j, np.array(ap.post_rgb) * rng.uniform(*ap.post_gain))
-        posts.append({"position": [px, 0.0, pz], "diameter_m": st.post_diameter_m, "height_m": st.post_height_m})
-    pxs = sorted(post_x)
-    for h in st.wire_heights_m:
-        wx = np.linspace(pxs[0], pxs[-1], 60)
-        zb = terrain.height(np.array([pxs[0], pxs[-1]]), np.zeros(2))
-        wz = np.interp(wx, [pxs[0], pxs[-1]], zb) + h
-        c = np.stack([wx, np.zeros_like(wx) - st.post_diameter_m / 2, wz], 1)
-        v, t = tube(c, np.full(len(wx), st.wire_diameter_m / 2), 6, cap=False)
-        mb.add(v, t, Cls.WIRE, -1, (0.6, 0.6, 0.62))
-
-    # --- weeds: clumps of blades under and beside the row
-    area_x = (x1 - x0) + 2 * row.margin_m + 2.0
-    n_clumps = rng.poisson(st.weeds_per_m2 * area_x * 1.6 / 5.0)
-    if n_clumps:
-        cx = rng.uniform(x0 - row.margin_m - 1.0, x1 + row.margin_m + 1.0, n_clumps)
-        cy = rng.uniform(-0.8, 0.8, n_clumps)
-        bx = (cx[:, None] + rng.normal(0, 0.04, (n_clumps, 5))).ravel()
-        by = (cy[:, None] + rng.normal(0, 0.04, (n_clumps, 5))).ravel()
-        bz = terrain.height(bx, by) - 0.01
-        hgt = rng.uniform(*st.weed_height_m, len(bx))
-        phi = rng.uniform(0, np.pi, len(bx))
-        lean = rng.normal(0, 0.3, (len(bx), 2)) * hgt[:, None]
-        w = 0.012
-        p0 = np.stack([bx - w * np.cos(phi), by - w * np.sin(phi), bz], 1)
-        p1 = np.stack([bx + w * np.cos(phi), by + w * np.sin(phi), bz], 1)
-        p2 = np.stack([bx + lean[:, 0], by + lean[:, 1], bz + hgt], 1)
-        v = np.stack([p0, p1, p2], 1).reshape(-1, 3)
-        t = np.arange(len(v)).reshape(-1, 3)
-        alb = np.array(ap.weed_rgb) * rng.uniform(*ap.weed_gain, (len(t), 1))
-        mb.add(v, t, Cls.WEED, -1, alb, sway=np.tile([0.0, 0.0, 0.3], len(t)))
-
-    # --- neighbouring rows as hedges in the background (depth and features at 3-6 m)
+    # --- neighbouring rows as hedges in the background (depth and features at 3-6 m), beyond the outer rows
+    x0, x1 = float(xy[0][0][0]), float(xy[0][0][-1])
     hx = np.arange(x0 - row.margin_m - 3.0, x1 + row.margin_m + 3.0, 0.15)
+    if blk.rows > 1:
+        hx = np.arange(x_lo - apron, x_hi + apron, 0.15)
     hz = np.arange(0.0, st.hedge_height_m, 0.15)
-    for sgn in (-1.0, 1.0):
+    for hy in (-st.hedge_distance_m, row_y[-1] + st.hedge_distance_m):
         HX, HZ = np.meshgrid(hx, hz)
-        HY = sgn * st.hedge_distance_m + rng.normal(0, 0.05, HX.shape) * (HZ > 0.3)
+        HY = hy + rng.normal(0, 0.05, HX.shape) * (HZ > 0.3)
         HZ = HZ + terrain.height(HX, HY)
         verts = np.stack([HX, HY, HZ], -1).reshape(-1, 3)
         _, t = grid_mesh(hx, hz, np.zeros((len(hz), len(hx))))
-        alb = np.array(ap.hedge_rgb) * rng.uniform(*ap.hedge_gain, (len(t), 1))
+        alb = np.array(sc.appearance.hedge_rgb) * rng.uniform(*sc.appearance.hedge_gain, (len(t), 1))
         mb.add(verts, t, Cls.HEDGE, -1, alb)
+    if blk.headland_m > 0:
+        # across both ends of the block, headland_m beyond the path's ends: what a turn in the headland looks at
+        hy = np.arange(-st.hedge_distance_m, row_y[-1] + st.hedge_distance_m, 0.15)
+        for hx0 in (x_lo - blk.headland_m, x_hi + blk.headland_m):
+            HY, HZ = np.meshgrid(hy, hz)
+            HX = hx0 + rng.normal(0, 0.05, HY.shape) * (HZ > 0.3)
+            HZ = HZ + terrain.height(HX, HY)
+            verts = np.stack([HX, HY, HZ], -1).reshape(-1, 3)
+            _, t = grid_mesh(hy, hz, np.zeros((len(hz), len(hy))))
+            alb = np.array(sc.appearance.hedge_rgb) * rng.uniform(*sc.appearance.hedge_gain, (len(t), 1))
+            mb.add(verts, t, Cls.HEDGE, -1, alb)
 
     vertices = np.concatenate(mb.vertices)
     sway = np.concatenate(mb.sway)
@@ -317,8 +326,62 @@ def build_scene(sc: Scenario, seed: int) -> Scene:
         trees=trees,
         fruit=fruits,
         posts=posts,
-        row_x=(x0, x1),
+        row_x=rows[0].x,
+        rows=tuple(rows),
     )
+
+
+def _posts_and_wires(mb: MeshBuilder, rng: np.random.Generator, sc: Scenario, xs: np.ndarray, y0: float,
+                     terrain: Terrain, posts: list[dict]) -> None:
+    """A row's trellis (on y = y0): end posts, a post every post_every_n_trees trees, the wires between the end
+    posts. Post ids run on over the block's rows (the instance masks' post index)."""
+    row, st, ap = sc.row, sc.structure, sc.appearance
+    n = len(xs)
+    x0, x1 = float(xs[0]), float(xs[-1])
+    post_x = [x0 - 0.5 * row.spacing_m, x1 + 0.5 * row.spacing_m]
+    if st.post_every_n_trees > 0:
+        post_x += [0.5 * (xs[k] + xs[k + 1]) for k in range(st.post_every_n_trees - 1, n - 1, st.post_every_n_trees)]
+    for px in sorted(post_x):
+        pz = float(terrain.height(px, y0))
+        s = np.linspace(-0.2, st.post_height_m, 30)
+        c = np.stack([np.full_like(s, px), np.full_like(s, y0), pz + s], 1)
+        v, t = tube(c, np.full(len(s), st.post_diameter_m / 2), 16)
+        mb.add(v, t, Cls.POST, len(posts), np.array(ap.post_rgb) * rng.uniform(*ap.post_gain))
+        posts.append({"position": [px, y0, pz], "diameter_m": st.post_diameter_m, "height_m": st.post_height_m})
+    pxs = sorted(post_x)
+    for h in st.wire_heights_m:
+        wx = np.linspace(pxs[0], pxs[-1], 60)
+        zb = terrain.height(np.array([pxs[0], pxs[-1]]), np.full(2, y0))
+        wz = np.interp(wx, [pxs[0], pxs[-1]], zb) + h
+        c = np.stack([wx, np.zeros_like(wx) + y0 - st.post_diameter_m / 2, wz], 1)
+        v, t = tube(c, np.full(len(wx), st.wire_diameter_m / 2), 6, cap=False)
+        mb.add(v, t, Cls.WIRE, -1, (0.6, 0.6, 0.62))
+
+
+def _weeds(mb: MeshBuilder, rng: np.random.Generator, sc: Scenario, x0: float, x1: float, y0: float,
+           terrain: Terrain) -> None:
+    """Clumps of blades under and beside a row (on y = y0)."""
+    row, st, ap = sc.row, sc.structure, sc.appearance
+    area_x = (x1 - x0) + 2 * row.margin_m + 2.0
+    n_clumps = rng.poisson(st.weeds_per_m2 * area_x * 1.6 / 5.0)
+    if not n_clumps:
+        return
+    cx = rng.uniform(x0 - row.margin_m - 1.0, x1 + row.margin_m + 1.0, n_clumps)
+    cy = y0 + rng.uniform(-0.8, 0.8, n_clumps)
+    bx = (cx[:, None] + rng.normal(0, 0.04, (n_clumps, 5))).ravel()
+    by = (cy[:, None] + rng.normal(0, 0.04, (n_clumps, 5))).ravel()
+    bz = terrain.height(bx, by) - 0.01
+    hgt = rng.uniform(*st.weed_height_m, len(bx))
+    phi = rng.uniform(0, np.pi, len(bx))
+    lean = rng.normal(0, 0.3, (len(bx), 2)) * hgt[:, None]
+    w = 0.012
+    p0 = np.stack([bx - w * np.cos(phi), by - w * np.sin(phi), bz], 1)
+    p1 = np.stack([bx + w * np.cos(phi), by + w * np.sin(phi), bz], 1)
+    p2 = np.stack([bx + lean[:, 0], by + lean[:, 1], bz + hgt], 1)
+    v = np.stack([p0, p1, p2], 1).reshape(-1, 3)
+    t = np.arange(len(v)).reshape(-1, 3)
+    alb = np.array(ap.weed_rgb) * rng.uniform(*ap.weed_gain, (len(t), 1))
+    mb.add(v, t, Cls.WEED, -1, alb, sway=np.tile([0.0, 0.0, 0.3], len(t)))
 
 
 def local_ground_plane(terrain: Terrain, x: float, y: float, radius: float = 0.5) -> tuple[np.ndarray, np.ndarray]:

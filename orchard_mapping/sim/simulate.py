@@ -1,7 +1,9 @@
 """Simulate recordings of an orchard row: bags per side, instance masks, ground_truth.json.
 
 Output folder layout (docs/ground_truth.md):
-  OUT/front/, OUT/back/       rosbag2 (MCAP) per side; `loop` mode writes one OUT/loop/ bag instead
+  OUT/front/, OUT/back/       rosbag2 (MCAP) per side; `loop` mode writes one OUT/loop/ bag instead, `block`
+                              mode one OUT/block/ bag (sim.block: OUT/row_<k>/ground_truth.json per row and
+                              OUT/ground_truth.json for the block)
   OUT/ground_truth.json       the truth, from the scene description
   OUT/tree_surfaces.npz       the trees' surfaces as points with their tree id (per-point segmentation truth)
   OUT/masks/<side>/*.png      16-bit instance masks (trunks, fruit, posts) every `masks_every` frames
@@ -115,7 +117,9 @@ def _tum(path: CameraPath, T_world_odom: np.ndarray) -> list[list[float]]:
 def _record(scene: Scene, renderer: Renderer, sensor: SensorModel, path: CameraPath, bag_dir: Path,
             mask_dir: Path | None, masks_every: int, rng: np.random.Generator, acc: dict[str, VisibilityAccumulator],
             topics: TopicsConfig, label: str, progress: Progress | None, with_side_topic: bool,
-            compress: bool = False) -> None:
+            compress: bool = False, acc_keys: np.ndarray | None = None) -> None:
+    """Render `path` into a bag (and masks). acc: what each frame saw, added to acc[its side] or, given
+    acc_keys (N,), to acc[acc_keys[i]] (a block's passes)."""
     intr = renderer.K
     n = len(path.stamps)
     index_rows = []
@@ -132,7 +136,7 @@ def _record(scene: Scene, renderer: Renderer, sensor: SensorModel, path: CameraP
             bag.write_camera_info(topics.camera_info, stamp, intr)
             bag.write_color(topics.color, stamp, color, encoding="rgb8", frame_id=intr.frame_id)
             bag.write_depth(topics.depth, stamp, depth, encoding="16UC1", frame_id=intr.frame_id)
-            acc[side].add(out, path.poses[i])
+            acc[side if acc_keys is None else str(acc_keys[i])].add(out, path.poses[i])
             if mask_dir is not None and masks_every and i % masks_every == 0:
                 cv2.imwrite(str(mask_dir / f"{i:06d}.png"), instance_mask(out))
                 index_rows.append(f"{i},{stamp:.6f}")
@@ -142,9 +146,13 @@ def _record(scene: Scene, renderer: Renderer, sensor: SensorModel, path: CameraP
         (mask_dir / "index.csv").write_text("frame,stamp\n" + "\n".join(index_rows) + "\n")
 
 
-def _tree_truth(scene: Scene, acc: dict[str, VisibilityAccumulator], alpha: float, dh: float) -> list[dict]:
+def _tree_truth(scene: Scene, acc: dict[str, VisibilityAccumulator], alpha: float, dh: float,
+                tree_ids: tuple[int, ...] | None = None) -> list[dict]:
+    """The truth of each tree (of those in tree_ids; None: all), what acc["front"] and acc["back"] saw of it."""
     trees = []
     for tree in scene.trees:
+        if tree_ids is not None and tree.id not in tree_ids:
+            continue
         base = trunk_axis_at_height(tree, 0.0)
         top = trunk_axis_at_height(tree, tree.clear_height)
         axis = (top - base) / np.linalg.norm(top - base)
@@ -182,6 +190,46 @@ def _tree_truth(scene: Scene, acc: dict[str, VisibilityAccumulator], alpha: floa
     return trees
 
 
+def truth_document(sc: Scenario, seed: int, scene: Scene, acc: dict[str, VisibilityAccumulator],
+                   paths: dict[str, CameraPath], T_world_odom: dict[str, np.ndarray], bag_of: dict[str, str],
+                   recorded: dict[str, bool], tree_ids: tuple[int, ...] | None = None) -> dict:
+    """ground_truth.json of one row filmed from both sides (docs/ground_truth.md): the trees (those in
+    tree_ids; None: all) and what acc[side] saw of them, each side's path (paths[side], in its odom frame
+    T_world_odom[side]), the bag it is in and whether it was recorded."""
+    c = sc.camera
+    dh = sc.trunk.diameter_height_m
+    trees = _tree_truth(scene, acc, sc.canopy_alpha_m, dh, tree_ids)
+    return {
+        "schema": SCHEMA,
+        "scenario": sc.name,
+        "seed": seed,
+        "n_trees": len(trees),
+        "diameter_height_m": dh,
+        "canopy_alpha_m": sc.canopy_alpha_m,
+        "canopy_volume_definition": CANOPY_VOLUME_DEFINITION.format(alpha=sc.canopy_alpha_m),
+        "height_definition": HEIGHT_DEFINITION,
+        "diameter_definition": DIAMETER_DEFINITION,
+        "camera": {"width": c.width, "height": c.height, "fx": c.fx, "fy": c.fy, "cx": c.cx, "cy": c.cy,
+                   "rate_hz": c.rate_hz, "depth_sigma_coeff": c.depth_sigma_coeff},
+        "trees": trees,
+        "posts": scene.posts,
+        "sides": {
+            side: {
+                "frame": f"odom_{side}",
+                "bag": bag_of[side],
+                "recorded": recorded[side],
+                "T_world_odom": np.round(T_world_odom[side], 9).tolist(),
+                "path_length_m": round(paths[side].path_length_m, 4),
+                "duration_s": round(float(paths[side].stamps[-1] - paths[side].stamps[0]), 4),
+                "trajectory": _tum(paths[side], T_world_odom[side]),
+            }
+            for side in ("front", "back")
+        },
+        "T_front_back": np.round(np.linalg.inv(T_world_odom["front"]) @ T_world_odom["back"], 9).tolist(),
+        "scenario_config": sc.model_dump(mode="json"),
+    }
+
+
 def fresh_output_folder(out_dir: str | Path, force: bool, how: str) -> Path:
     """The output folder of a simulation, created empty: a non-empty one is replaced only with force (`how` names
     the option that forces it), else ScenarioError."""
@@ -204,10 +252,13 @@ def simulate(sc: Scenario, seed: int, out_dir: str | Path, *, force: bool = Fals
     visibility fields then say nothing). `compress`: zstd chunk compression of the MCAP bags.
     """
     out = fresh_output_folder(out_dir, force, "--force")
+    if sc.path.mode == "block":
+        from orchard_mapping.sim.block import simulate_block
+
+        return simulate_block(sc, seed, out, topics=topics, progress=progress, compress=compress)
 
     rig = Rig.build(sc, seed)
     scene, intr, renderer, sensor = rig.scene, rig.intrinsics, rig.renderer, rig.sensor
-    c = sc.camera
     dh = sc.trunk.diameter_height_m
     acc = {side: VisibilityAccumulator(scene, intr, dh) for side in ("front", "back")}
     path_rng = np.random.default_rng([seed, 1])
@@ -243,35 +294,9 @@ def simulate(sc: Scenario, seed: int, out_dir: str | Path, *, force: bool = Fals
             frames[side] = len(paths[side].stamps)
         T_world_odom = {side: paths[side].poses[0] for side in ("front", "back")}
 
-    truth = {
-        "schema": SCHEMA,
-        "scenario": sc.name,
-        "seed": seed,
-        "n_trees": len(scene.trees),
-        "diameter_height_m": dh,
-        "canopy_alpha_m": sc.canopy_alpha_m,
-        "canopy_volume_definition": CANOPY_VOLUME_DEFINITION.format(alpha=sc.canopy_alpha_m),
-        "height_definition": HEIGHT_DEFINITION,
-        "diameter_definition": DIAMETER_DEFINITION,
-        "camera": {"width": c.width, "height": c.height, "fx": c.fx, "fy": c.fy, "cx": c.cx, "cy": c.cy,
-                   "rate_hz": c.rate_hz, "depth_sigma_coeff": c.depth_sigma_coeff},
-        "trees": _tree_truth(scene, acc, sc.canopy_alpha_m, dh),
-        "posts": scene.posts,
-        "sides": {
-            side: {
-                "frame": f"odom_{side}",
-                "bag": "loop" if sc.path.mode == "loop" else side,
-                "recorded": sc.path.mode == "loop" or side in record,
-                "T_world_odom": np.round(T_world_odom[side], 9).tolist(),
-                "path_length_m": round(paths[side].path_length_m, 4),
-                "duration_s": round(float(paths[side].stamps[-1] - paths[side].stamps[0]), 4),
-                "trajectory": _tum(paths[side], T_world_odom[side]),
-            }
-            for side in ("front", "back")
-        },
-        "T_front_back": np.round(np.linalg.inv(T_world_odom["front"]) @ T_world_odom["back"], 9).tolist(),
-        "scenario_config": sc.model_dump(mode="json"),
-    }
+    bag_of = {side: "loop" if sc.path.mode == "loop" else side for side in ("front", "back")}
+    recorded = {side: sc.path.mode == "loop" or side in record for side in ("front", "back")}
+    truth = truth_document(sc, seed, scene, acc, paths, T_world_odom, bag_of, recorded)
     write_tree_surfaces(scene, out / TREE_SURFACES_NPZ)  # before the truth file: its presence means "complete"
     truth_path = out / "ground_truth.json"
     atomic_write_text(truth_path, json.dumps(truth, indent=1))

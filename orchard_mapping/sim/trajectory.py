@@ -4,7 +4,8 @@ two_sweep (default, one recording per side): a level sweep at trunk height along
 the side, then, after raising the camera on a stick at the row end, back along
 the same side with the camera high and tilted down over the canopy. The return
 sweep revisits the same trees, which gives loop closure something to find.
-single_pass: the level sweep alone. loop: one drive around the row.
+single_pass: the level sweep alone. loop: one drive around the row. block: one drive along both sides of
+every row of a block (`block_path`).
 Poses are T_world_cam of the colour optical frame (x right, y down, z forward).
 """
 
@@ -15,7 +16,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from orchard_mapping.sim.scenario import MotionSpec, PathSpec, Scenario
-from orchard_mapping.sim.scene import Terrain
+from orchard_mapping.sim.scene import RowLine, Terrain
 
 
 @dataclass(frozen=True)
@@ -24,6 +25,7 @@ class CameraPath:
     poses: np.ndarray  # (N, 4, 4) T_world_cam
     sides: np.ndarray  # (N,) str "front" / "back"
     path_length_m: float
+    rows: np.ndarray | None = None  # (N,) int, the row each frame films (block drives; None: the one row)
 
 
 def look_rotation(forward: np.ndarray, roll: np.ndarray) -> np.ndarray:
@@ -187,3 +189,60 @@ def _loop_path(sc: Scenario, row_x: tuple[float, float], terrain: Terrain, rng: 
     pos = np.stack([x, y, terrain.height(x, y) + p.low_height_m], 1) + jit
     T, length = _looking_poses(pos, yaw + ang[:, 0], ang[:, 1], np.radians(p.roll_deg) + ang[:, 2])
     return CameraPath(t0 + t, T, sides, length)
+
+
+def block_path(sc: Scenario, rows: tuple[RowLine, ...], terrain: Terrain, rng: np.random.Generator, t0: float
+               ) -> CameraPath:
+    """One drive along both sides of every row of a block, the camera looking left of the way it goes (at the
+    row it drives along), level at trunk height: row k's front side (y_k - distance) towards +x, a half circle
+    round the row end (the camera looking at it), its back side (y_k + distance) towards -x; then a half circle
+    in the headland that brings it into the same alley the other way round (the camera looking out of the turn),
+    on to row k + 1's front side. Every row's passes span the block's length (its longest row and
+    row.margin_m). Each frame's side and row: half of each turn to the pass before it, half to the next, as
+    the loop path labels its turn."""
+    p = sc.path
+    rate = sc.camera.rate_hz
+    d = p.distance_m
+    r_alley = sc.block.row_spacing_m / 2 - d  # radius of the turn into the alley the other way round
+    ds = p.speed_mps / rate
+    x_lo = min(r.x[0] for r in rows) - sc.row.margin_m
+    x_hi = max(r.x[1] for r in rows) + sc.row.margin_m
+    s = np.arange(0, x_hi - x_lo, ds)  # along a side
+    # Both turns at the heading rate of the one round the row end (speed / distance): a vehicle slows down in
+    # the tighter turn in the alley, and the front end sees the same change of view per frame in both.
+    arc = np.arange(0, np.pi * d, ds) / d  # rad swept
+    xs, ys, yaws, sides, row_no = [], [], [], [], []
+
+    def add(x: np.ndarray, y: np.ndarray, yaw: np.ndarray, side: list[str], row: int) -> None:
+        xs.append(x)
+        ys.append(y)
+        yaws.append(yaw)
+        sides.extend(side)
+        row_no.extend([row] * len(x))
+
+    half = len(arc) // 2
+    for k, line in enumerate(rows):
+        y0, n = line.y, line.number
+        add(x_lo + s, np.full(len(s), y0 - d), np.full(len(s), np.pi / 2), ["front"] * len(s), n)
+        # round the row end, anticlockwise: the camera looks at the turn's centre, the row end
+        a = -np.pi / 2 + arc
+        add(x_hi + d * np.cos(a), y0 + d * np.sin(a), a + np.pi, ["front"] * half + ["back"] * (len(arc) - half), n)
+        add(x_hi - s, np.full(len(s), y0 + d), np.full(len(s), -np.pi / 2), ["back"] * len(s), n)
+        if k + 1 == len(rows):
+            break
+        # into the alley again, clockwise round a centre half way between the two rows: the camera looks out
+        a = -np.pi / 2 - arc
+        yc = y0 + sc.block.row_spacing_m / 2
+        xs_, ys_ = x_lo + r_alley * np.cos(a), yc + r_alley * np.sin(a)
+        add(xs_[:half], ys_[:half], a[:half], ["back"] * half, n)
+        add(xs_[half:], ys_[half:], a[half:], ["front"] * (len(arc) - half), rows[k + 1].number)
+    x = np.concatenate(xs)
+    y = np.concatenate(ys)
+    yaw = np.concatenate(yaws)
+    n_all = len(x)
+    t = np.arange(n_all) / rate
+    travelled = np.concatenate([[0.0], np.cumsum(np.hypot(np.diff(x), np.diff(y)))])
+    jit, ang = _hand_shake(p, t, travelled, rng)
+    pos = np.stack([x, y, terrain.height(x, y) + p.low_height_m], 1) + jit
+    T, length = _looking_poses(pos, yaw + ang[:, 0], ang[:, 1], np.radians(p.roll_deg) + ang[:, 2])
+    return CameraPath(t0 + t, T, np.array(sides), length, np.array(row_no))

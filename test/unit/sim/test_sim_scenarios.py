@@ -27,7 +27,7 @@ def test_scenario_loads_and_builds(name):
     sc = load_scenario(name, SMALL)
     assert sc.name == name and sc.description
     scene = build_scene(sc, 0)
-    assert len(scene.trees) == 3
+    assert len(scene.trees) == 3 * sc.block.rows  # a block: each row its own trees
     n_tri = len(scene.triangles)
     assert len(scene.tri_cls) == len(scene.tri_inst) == len(scene.tri_albedo) == n_tri
     assert scene.triangles.min() >= 0 and scene.triangles.max() < len(scene.vertices)
