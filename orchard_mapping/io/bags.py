@@ -22,6 +22,11 @@ from typing import Any, Literal
 
 import numpy as np
 import yaml
+
+try:
+    from compression import zstd  # Python 3.14; rosbags decompresses MCAP chunks with it (or its backport)
+except ImportError:
+    from backports import zstd
 from rosbags.highlevel import AnyReader, AnyReaderError
 from rosbags.rosbag1 import ReaderError as Reader1Error
 from rosbags.rosbag2 import (
@@ -38,13 +43,14 @@ from orchard_mapping.errors import (
     MissingTopicError,
 )
 from orchard_mapping.io.pairing import pair_stamps
-from orchard_mapping.io.salvage import salvaged_copy
+from orchard_mapping.io.salvage import Salvaged, salvaged_before, salvaged_copy
 from orchard_mapping.io.typesys import typestore
 
 __all__ = [
     "COLOR_ENCODINGS",
     "DEPTH_ENCODINGS",
     "BagSummary",
+    "InputNotes",
     "RGBDSequence",
     "RawMessage",
     "camera_intrinsics",
@@ -62,6 +68,7 @@ log = logging.getLogger(__name__)
 IMAGE = "sensor_msgs/msg/Image"
 CAMERA_INFO = "sensor_msgs/msg/CameraInfo"
 STRING = "std_msgs/msg/String"
+COMPRESSED_IMAGE = "sensor_msgs/msg/CompressedImage"
 
 # encoding -> (bytes per pixel, channel order of the first three channels)
 COLOR_ENCODINGS: dict[str, tuple[int, str]] = {
@@ -76,6 +83,13 @@ DEPTH_ENCODINGS: dict[str, tuple[int, float]] = {"16UC1": (2, 1000.0), "mono16":
 _READ_ERRORS = (AnyReaderError, Reader1Error, Reader2Error, OSError, EOFError, struct.error)
 MCAP_MAGIC = b"\x89MCAP0\r\n"  # an MCAP file starts and, once closed, ends with it
 _DESER_ERRORS = (AnyReaderError, ValueError, IndexError, struct.error)
+# A damaged chunk fails in its decompressor, which rosbags lets through: zstd's error, lz4's RuntimeError
+_DECOMPRESS_ERRORS = (zstd.ZstdError, RuntimeError)
+# Consecutive frames further apart than both are a gap in the recording (flagged stamp_gap): the front end
+# loses track across it and restarts, leaving a seam in the side's trajectory. 1 s is 15-30 camera periods at
+# a RealSense's rates; the periods bound keeps a slow recording's (a 2 Hz fixture's) own rhythm from counting.
+GAP_MIN_S = 1.0
+GAP_PERIODS = 5
 
 
 # --------------------------------------------------------------------------- stamps
@@ -129,10 +143,16 @@ def _open_reader(path: Path) -> Iterator[AnyReader]:
 
 
 def _messages(reader: AnyReader, connections: Sequence[Any], bag: str) -> Iterator[tuple[Any, int, bytes]]:
+    last: tuple[str, int] | None = None  # (topic, log time ns) of the last whole message read
     try:
-        yield from reader.messages(connections=connections)
-    except _READ_ERRORS as err:
-        raise BagReadError(f"bag is corrupt or truncated: {err}", bag=bag) from err
+        for conn, log_ns, raw in reader.messages(connections=connections):
+            last = (conn.topic, log_ns)
+            yield conn, log_ns, raw
+    except _READ_ERRORS + _DECOMPRESS_ERRORS as err:
+        # where the damage lies: a corrupt chunk in the middle of a recording is found only when read
+        where = (f"the last whole message read was on {last[0]} at log time {last[1] / 1e9:.3f} s" if last
+                 else "no message before it could be read")
+        raise BagReadError(f"bag is corrupt or truncated: {type(err).__name__}: {err}; {where}", bag=bag) from err
 
 
 def _deserialize(reader: AnyReader, raw: bytes, conn: Any, bag: str) -> Any:
@@ -180,13 +200,18 @@ def _decode_color(msg: Any) -> np.ndarray:  # (H, W, 3) uint8 RGB
     return np.array(rgb, dtype=np.uint8, order="C")  # own, writable copy
 
 
-def _decode_depth(msg: Any, depth_min_m: float, depth_max_m: float) -> np.ndarray:  # (H, W) float32 m, 0 = missing
+def _depth_m(msg: Any) -> np.ndarray:  # (H, W) float32 m as the encoding reads, unchecked
     bpp, units_per_m = DEPTH_ENCODINGS[msg.encoding]
     dtype = np.dtype("u2" if bpp == 2 else "f4").newbyteorder(">" if msg.is_bigendian else "<")
     raw = np.ascontiguousarray(_pixels(msg, bpp)).view(dtype).reshape(msg.height, msg.width)
     depth = raw.astype(np.float32)
     if units_per_m != 1.0:
         depth /= np.float32(units_per_m)  # division, so whole millimetres give the nearest float32 metres
+    return depth
+
+
+def _decode_depth(msg: Any, depth_min_m: float, depth_max_m: float) -> np.ndarray:  # (H, W) float32 m, 0 = missing
+    depth = _depth_m(msg)
     invalid = ~np.isfinite(depth) | (depth < depth_min_m) | (depth > depth_max_m)
     depth[invalid] = 0.0
     return depth
@@ -201,11 +226,33 @@ def _topic_conns(reader: AnyReader, topic: str, msgtype: str, bag: str, what: st
         raise MissingTopicError(f"{what} topic not in bag; topics present: {present}", bag=bag, topic=topic)
     types = {c.msgtype for c in info.connections}
     if types != {msgtype}:
-        raise BagFormatError(f"{what} topic holds {sorted(types)}, expected {msgtype}", bag=bag, topic=topic)
+        hint = (" (compressed images are not decoded: record the raw image topic, or republish it raw with "
+                "image_transport)" if COMPRESSED_IMAGE in types else "")
+        raise BagFormatError(f"{what} topic holds {sorted(types)}, expected {msgtype}{hint}", bag=bag, topic=topic)
     return list(info.connections)
 
 
 # --------------------------------------------------------------------------- RGB-D sequence
+
+
+@dataclass(frozen=True)
+class InputNotes:
+    """What `read_rgbd` found wrong with a recording and worked round (each also logged as a warning naming the
+    bag and the topic); `orchard-map run` writes them to inputs.json, so a result made of such a recording says so."""
+
+    colour_without_depth: int = 0  # colour images dropped: no depth image within max_pair_dt_s
+    duplicate_stamps: int = 0  # colour images dropped: an earlier one in the bag has the same stamp
+    out_of_order_stamps: int = 0  # colour stamps earlier than the one before them in the bag (frames are sorted)
+    gaps: tuple[tuple[float, float], ...] = ()  # s, (stamp before, stamp after) of each gap between frames
+    cut_short: Salvaged | None = None  # the file ended abruptly: what was read of it and what was lost
+
+    @property
+    def flags(self) -> tuple[str, ...]:
+        """One word per kind of trouble, as inputs.json lists them."""
+        named = (("cut_short", self.cut_short is not None), ("stamp_gap", bool(self.gaps)),
+                 ("duplicate_stamps", self.duplicate_stamps > 0), ("out_of_order_stamps", self.out_of_order_stamps > 0),
+                 ("colour_without_depth", self.colour_without_depth > 0))
+        return tuple(name for name, on in named if on)
 
 
 class RGBDSequence:
@@ -228,6 +275,7 @@ class RGBDSequence:
         sides: tuple[str, ...],
         depth_range_m: tuple[float, float],
         dropped: int,
+        notes: InputNotes | None = None,
     ) -> None:
         self.bag = bag
         self.topics = topics
@@ -236,6 +284,7 @@ class RGBDSequence:
         self.stamps = stamps_ns.astype(np.float64) / 1e9  # (N,) s
         self.sides = sides
         self.dropped = dropped  # colour images without a depth partner
+        self.notes = notes if notes is not None else InputNotes(colour_without_depth=dropped)
         self._color_index = color_index
         self._depth_index = depth_index
         self._depth_range_m = depth_range_m
@@ -372,6 +421,29 @@ def decode_frame(color_msg: Any, depth_msg: Any | None, intr: CameraIntrinsics, 
                      depth=depth, intrinsics=intr, side=side, index=index)
 
 
+def _gaps(stamps_ns: np.ndarray) -> list[tuple[float, float]]:
+    """(s before, s after) of each step between the sorted frame stamps longer than GAP_MIN_S and GAP_PERIODS
+    camera periods (the median step)."""
+    steps = np.diff(stamps_ns)
+    if steps.size == 0:
+        return []
+    limit = max(GAP_MIN_S * 1e9, GAP_PERIODS * float(np.median(steps)))
+    return [(stamps_ns[i] / 1e9, stamps_ns[i + 1] / 1e9) for i in np.flatnonzero(steps > limit)]
+
+
+def _depth_unit_hint(seen_m: list[float], encoding: str, depth_min_m: float, depth_max_m: float) -> str:
+    """Why no depth was in range, where the values say: depth in the other unit than its encoding's."""
+    if not seen_m:
+        return ""
+    median = float(np.median(seen_m))
+    text = f"; its finite non-zero values, read as {encoding}, are {median:.4g} m at the median"
+    if encoding == "32FC1" and median > depth_max_m:
+        text += " (32FC1 depth is read as metres: is it in millimetres?)"
+    elif encoding in ("16UC1", "mono16") and median < depth_min_m:
+        text += f" ({encoding} depth is read as millimetres: is it in metres, or scaled?)"
+    return text
+
+
 def read_rgbd(
     path: str | os.PathLike[str],
     topics: TopicsConfig = TopicsConfig(),  # noqa: B008 (frozen model, safe to share)
@@ -434,6 +506,8 @@ def read_rgbd(
         bad_k: str | None = None
         n_info = 0
         depth_ok = False
+        depth_seen: list[float] = []
+        depth_encoding = ""  # m, median of each image's finite non-zero depth while none is in range
         for conn, log_ns, raw in _messages(reader, wanted, bag):
             kind = by_id[conn.id]
             if kind == "s":
@@ -463,6 +537,7 @@ def read_rgbd(
             else:
                 msg = _deserialize(reader, raw, conn, bag)
                 _check_image(msg, DEPTH_ENCODINGS, "depth", len(depth_ns), bag, conn.topic)
+                depth_encoding = msg.encoding
                 if color_size is not None and (msg.width, msg.height) != color_size:
                     raise BagFormatError(
                         f"depth image {len(depth_ns)} is {msg.width}x{msg.height} but colour images are "
@@ -471,7 +546,11 @@ def read_rgbd(
                         topic=conn.topic,
                     )
                 if not depth_ok:
-                    depth_ok = bool(np.any(_decode_depth(msg, depth_min_m, depth_max_m)))
+                    metres = _depth_m(msg)
+                    depth_ok = bool(np.any((metres >= depth_min_m) & (metres <= depth_max_m)))
+                    read = metres[np.isfinite(metres) & (metres > 0)]
+                    if read.size:
+                        depth_seen.append(float(np.median(read)))
                 depth_ns.append(header_ns(msg.header))
 
     if not color_ns:
@@ -491,7 +570,8 @@ def read_rgbd(
         if not depth_ok:
             raise BagFormatError(
                 f"depth topic holds no valid depth (every pixel is 0, NaN or outside [{depth_min_m}, {depth_max_m}] m) "
-                f"in all {len(depth_ns)} images; use mode='rgb' for colour only",
+                f"in all {len(depth_ns)} images{_depth_unit_hint(depth_seen, depth_encoding, depth_min_m, depth_max_m)}"
+                "; use mode='rgb' for colour only",
                 bag=bag,
                 topic=topics.depth,
             )
@@ -504,8 +584,16 @@ def read_rgbd(
             int(np.sum(np.diff(c_ns) < 0)),
             topics.color,
         )
-    color_index = np.argsort(c_ns, kind="stable")  # (Nc,)
+    color_index = np.argsort(c_ns, kind="stable")  # (Nc,) a stamp's first image in the bag comes first
     c_sorted = c_ns[color_index]
+    repeat = np.r_[False, np.diff(c_sorted) == 0]  # (Nc,) an image whose stamp an earlier one has
+    duplicates = int(np.sum(repeat))
+    if duplicates:
+        # the same frame written twice (a recorder's retry, two drivers on one topic): one frame per stamp,
+        # or the front end would be handed a step of 0 s
+        log.warning("%s: %d colour images on %s repeat an earlier image's stamp (the first at %.3f s); the "
+                    "repeats are dropped", bag, duplicates, topics.color, c_sorted[repeat][0] / 1e9)
+        color_index, c_sorted = color_index[~repeat], c_sorted[~repeat]
     if mode == "rgbd":
         depth_index = pair_stamps(c_sorted, np.asarray(depth_ns, dtype=np.int64), round(max_pair_dt_s * 1e9))
         keep = depth_index >= 0
@@ -529,6 +617,16 @@ def read_rgbd(
         depth_index = np.full(color_index.shape, -1, dtype=np.int64)
         dropped = 0
 
+    gaps = _gaps(c_sorted)
+    for before, after in gaps:
+        log.warning("%s: a gap of %.1f s without frames on %s, from %.3f s to %.3f s (the camera's track may be "
+                    "lost across it and restarted: a seam in the trajectory)", bag, after - before, topics.color,
+                    before, after)
+    cut = _cut_mcap(path)
+    notes = InputNotes(colour_without_depth=dropped, duplicate_stamps=duplicates,
+                       out_of_order_stamps=int(np.sum(np.diff(c_ns) < 0)), gaps=tuple(gaps),
+                       cut_short=salvaged_before(cut) if cut is not None else None)
+
     if side_ns:
         s_ns = np.asarray(side_ns, dtype=np.int64)
         s_order = np.argsort(s_ns, kind="stable")
@@ -538,7 +636,8 @@ def read_rgbd(
         sides = ("",) * c_sorted.size
 
     seq = RGBDSequence(
-        bag, topics, mode, intr, c_sorted, color_index, depth_index, sides, (depth_min_m, depth_max_m), dropped
+        bag, topics, mode, intr, c_sorted, color_index, depth_index, sides, (depth_min_m, depth_max_m), dropped,
+        notes,
     )
     log.info("%s: %d frames (%s), %.2f s", bag, len(seq), mode, seq.duration)
     return seq
