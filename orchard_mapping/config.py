@@ -7,6 +7,7 @@ values are `ConfigError`s naming the dotted key.
 
 from __future__ import annotations
 
+import difflib
 import re
 from pathlib import Path
 from typing import Any, Literal
@@ -148,13 +149,15 @@ def _read_yaml(path: Path) -> dict[str, Any]:
     return data
 
 
-def validation_message(err: ValidationError, source: str) -> str:
-    """One line per problem, each naming the dotted key."""
+def validation_message(err: ValidationError, source: str, known: list[str] | None = None) -> str:
+    """One line per problem, each naming the dotted key; an unknown key with the known key nearest in spelling
+    (a typo: `input.topics.colour`), where `known` lists them."""
     lines = []
     for e in err.errors():
         key = ".".join(str(p) for p in e["loc"]) or "<root>"
         if e["type"] in ("extra_forbidden", "unexpected_keyword_argument"):
-            lines.append(f"unknown key '{key}'")
+            near = difflib.get_close_matches(key, known or [], n=1, cutoff=0.75)
+            lines.append(f"unknown key '{key}'" + (f" (did you mean '{near[0]}'?)" if near else ""))
         else:
             lines.append(f"bad value for '{key}': {e['msg']} (got {e.get('input')!r})")
     return f"invalid configuration in {source}: " + "; ".join(lines)
@@ -164,7 +167,8 @@ def config_from_dict(data: dict[str, Any], source: str = "<dict>") -> OrchardCon
     try:
         return OrchardConfig.model_validate(data)
     except ValidationError as err:
-        raise ConfigError(validation_message(err, source)) from err
+        known = list(flatten(OrchardConfig().model_dump(mode="json")))
+        raise ConfigError(validation_message(err, source, known)) from err
 
 
 def load_config(path: str | Path | None = None, overrides: dict[str, Any] | None = None) -> OrchardConfig:
@@ -176,6 +180,7 @@ def load_config(path: str | Path | None = None, overrides: dict[str, Any] | None
         source = str(path)
     if overrides:
         data = _deep_merge(data, overrides)
+        source += " and the overrides given (--set)"  # the file alone may be right: name both
     return config_from_dict(data, source)
 
 
