@@ -57,6 +57,15 @@ class ResultFormatError(OrchardMappingError):
     """A result folder does not follow the result contract (docs/results.md)."""
 
 
+class OutputError(OrchardMappingError):
+    """The result folder cannot be written (no permission, not a folder, disk full). `path` says where; an
+    earlier result in the folder is left as it was."""
+
+    def __init__(self, message: str, *, path: str) -> None:
+        super().__init__(f"{message} (folder {path})")
+        self.path = path
+
+
 class AlignmentError(OrchardMappingError):
     """Two reconstructions (or a trajectory and its reference) cannot be aligned."""
 

@@ -31,6 +31,7 @@ console = Console(width=None if Console().is_terminal else 140)
 err_console = Console(stderr=True, soft_wrap=True)  # one line per error: greppable in CI logs
 
 EXIT_USAGE = 2
+EXIT_INTERRUPTED = 130
 
 
 def _fail(err: Exception) -> typer.Exit:
@@ -38,6 +39,18 @@ def _fail(err: Exception) -> typer.Exit:
 
     err_console.print(Text.assemble(("error: ", "bold red"), str(err)))
     return typer.Exit(EXIT_USAGE)
+
+
+def _interrupted(err: BaseException | None) -> bool:
+    """Whether err is Ctrl-C or came of it: a native module's import that Ctrl-C stops raises ImportError
+    from the KeyboardInterrupt (onnxruntime's, Open3D's; they are imported when the run first needs them)."""
+    seen: set[int] = set()
+    while err is not None and id(err) not in seen:
+        if isinstance(err, KeyboardInterrupt):
+            return True
+        seen.add(id(err))
+        err = err.__cause__ or err.__context__
+    return False
 
 
 def _parse_sets(sets: list[str]) -> dict[str, Any]:
@@ -129,6 +142,16 @@ def run(
             result = run_pipeline(front, back, out, cfg, progress=progress, trunk_worker=True)
     except OrchardMappingError as err:
         raise _fail(err) from err
+    except BaseException as err:
+        if not _interrupted(err):
+            raise
+        # Ctrl-C: the run's staging folder is gone (io.results.staged_folder); say so, and exit as a shell
+        # reports a process stopped by SIGINT (128 + 2), which scripts test for
+        from rich.text import Text
+
+        err_console.print(Text.assemble(("interrupted: ", "bold red"), f"nothing of this run was written to {out} "
+                                        "(an earlier result there is left as it was)"))
+        raise typer.Exit(EXIT_INTERRUPTED) from err
     t = result.timings
     for side, sm in result.sides.items():
         trunks = f", {len(sm.trunks)} trunks" if cfg.trunks.source != "off" else ""

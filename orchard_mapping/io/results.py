@@ -12,6 +12,7 @@ from __future__ import annotations
 import contextlib
 import csv
 import dataclasses
+import errno
 import io
 import json
 import math
@@ -26,7 +27,7 @@ from typing import Any
 import numpy as np
 
 from orchard_mapping.core.types import StampedTrajectory
-from orchard_mapping.errors import ResultFormatError
+from orchard_mapping.errors import OutputError, ResultFormatError
 from orchard_mapping.io.json_fields import as_array, as_integer, as_mapping, as_number, field_error, get_field
 
 __all__ = [
@@ -169,31 +170,67 @@ def _dumps(obj: Any, path: Path) -> str:
         raise ResultFormatError(f"{path}: cannot serialise as JSON: {err}") from err
 
 
+# errno values that mean the folder cannot take the results, whichever file met them (the message may name none)
+_CANNOT_TAKE = frozenset({errno.ENOSPC, errno.EDQUOT, errno.EROFS})
+
+
+def _output_error(err: OSError, out: Path) -> OutputError | None:
+    """The OutputError that `err`, met while a set of results was written into `out`, stands for; None when the
+    error is not about `out` (a bag or a model that cannot be read is another error's to say)."""
+    name = os.fsdecode(err.filename) if err.filename is not None else None
+    inside = False
+    if name is not None:
+        target, p = out.absolute(), Path(name).absolute()
+        inside = p == target or target in p.parents
+        name = None if p == target else name  # the folder itself: the message names it already
+    if not inside and err.errno not in _CANNOT_TAKE:
+        return None
+    why = err.strerror or str(err)
+    return OutputError(f"cannot write the results: {why}{f' ({name})' if name else ''}; nothing of this run "
+                       "was kept there", path=str(out))
+
+
 @contextlib.contextmanager
-def staged_folder(out: str | Path) -> Iterator[Path]:
+def staged_folder(out: str | Path, replaces: Iterable[str] = ()) -> Iterator[Path]:
     """A staging folder inside `out` to write a set of results into; its files move into `out` only when
     the block ends without an error, so a failed or stopped run leaves no half-written set (earlier
-    results in `out` stay as they were, and folders this call created are removed again)."""
+    results in `out` stay as they were, and folders this call created are removed again).
+
+    replaces: glob patterns of the files and folders a set of results is made of. Those in `out` that the new
+    set does not hold are removed once it has moved in, so that the folder holds one run's results, never a
+    mix of two (an earlier run's trunks.json beside a run without trunks); other files are left alone.
+    An OSError met writing into `out` (no permission, not a folder, disk full) is raised as OutputError."""
     out = Path(out)
     created = [d for d in (out, *out.parents) if not d.exists()]  # folders made here (deepest first)
-    out.mkdir(parents=True, exist_ok=True)
-    stage = Path(tempfile.mkdtemp(prefix=".staging-", dir=out))
+    stage: Path | None = None
     try:
+        out.mkdir(parents=True, exist_ok=True)
+        stage = Path(tempfile.mkdtemp(prefix=".staging-", dir=out))
         yield stage
+        written = {f.name for f in stage.iterdir()}
         for f in sorted(stage.iterdir()):
             if f.is_dir() and (out / f.name).is_dir():  # a folder of results (trees/): the earlier one goes
                 shutil.rmtree(out / f.name)
             os.replace(f, out / f.name)
-    except BaseException:
-        shutil.rmtree(stage, ignore_errors=True)
+        for pattern in replaces:
+            for old in out.glob(pattern):
+                if old.name not in written and not old.name.startswith(".staging-"):
+                    shutil.rmtree(old) if old.is_dir() and not old.is_symlink() else old.unlink()
+    except BaseException as err:
+        if stage is not None:
+            shutil.rmtree(stage, ignore_errors=True)
         for d in created:  # rmdir: only while empty
             try:
                 d.rmdir()
             except OSError:
                 break
+        output_error = _output_error(err, out) if isinstance(err, OSError) else None
+        if output_error is not None:
+            raise output_error from err
         raise
     finally:
-        shutil.rmtree(stage, ignore_errors=True)
+        if stage is not None:
+            shutil.rmtree(stage, ignore_errors=True)
 
 
 def portable_json(obj: Any, **dumps_kw: Any) -> str:

@@ -16,6 +16,7 @@ from orchard_mapping.config import OrchardConfig
 from orchard_mapping.core.geometry import matrix_to_quat, move_with_keyframes
 from orchard_mapping.core.sidemap import SideMap
 from orchard_mapping.core.types import StampedTrajectory
+from orchard_mapping.io.bags import RGBDSequence
 from orchard_mapping.io.figures import RowView, write_row_png, write_tree_png
 from orchard_mapping.io.landmarks import GROUNDS_JSON, TRUNKS_JSON, write_grounds, write_trunks
 from orchard_mapping.io.laz import TREES_LAZ, write_laz
@@ -24,6 +25,7 @@ from orchard_mapping.io.results import (
     TREES_CSV,
     TREES_JSON,
     ResultTree,
+    atomic_write_json,
     atomic_write_text,
     map_trajectory_filename,
     write_side_merge,
@@ -35,10 +37,16 @@ from orchard_mapping.pipeline.traits import RowLabels
 
 # What a merge writes into the result folder (docs/results.md).
 MERGED_PLY, ROW_PNG, TREE_FIGURES, FRUIT_CSV = "merged.ply", "row.png", "trees", "fruit.csv"
+INPUTS_JSON = "inputs.json"  # the bags read and what was wrong with them
+INPUTS_SCHEMA = "orchard_mapping.inputs/1"
 
 
 MERGE_OUTPUTS = (SIDE_MERGE_JSON, TREES_JSON, TREES_CSV, map_trajectory_filename("*"), MERGED_PLY, ROW_PNG,
                  TREES_LAZ, TREE_FIGURES, FRUIT_CSV)
+# Everything `orchard-map run` may write (glob patterns): a second run into the folder replaces the whole set
+# (io.results.staged_folder), so that no file of the earlier run stays beside the new ones as if it were theirs.
+RUN_OUTPUTS = (*MERGE_OUTPUTS, "trajectory_*.tum", "odometry_*.tum", "front.ply", "back.ply", TRUNKS_JSON,
+               GROUNDS_JSON, "timings.json", "config.effective.yaml", INPUTS_JSON)
 
 
 def write_cloud(path: Path, points: np.ndarray, colors: np.ndarray) -> None:
@@ -55,7 +63,9 @@ def _write_ply_atomically(path: Path, write: Callable[[str], bool]) -> None:
     tmp = path.with_name(f".{path.stem}.partial.ply")
     if not write(str(tmp)):
         tmp.unlink(missing_ok=True)
-        raise OSError(f"could not write point cloud {path}")
+        # Open3D says only that it failed (a full disk too): the file named, io.results.staged_folder can tell
+        # the user which folder could not take it
+        raise OSError(None, "could not write the point cloud", str(path))
     os.replace(tmp, path)
 
 
@@ -73,6 +83,29 @@ def write_labelled_cloud(path: Path, points: np.ndarray, colors: np.ndarray, sid
 def _trajectory(stamps: np.ndarray, poses: np.ndarray, frame_id: str) -> StampedTrajectory:
     q = np.array([matrix_to_quat(T[:3, :3]) for T in poses])
     return StampedTrajectory(stamps, poses[:, :3, 3], q, frame_id)
+
+
+def write_inputs(out: Path, seqs: dict[str, RGBDSequence]) -> None:
+    """inputs.json: each bag read (by the keys open_sides gave it: its sides, or "drive"), its frames, and what
+    read_rgbd found wrong with it and worked round (io.bags.InputNotes), so that a result made of a recording
+    cut short or with a gap says so after the run's warnings have scrolled away (docs/results.md)."""
+    bags: dict[str, dict] = {}
+    for key, seq in seqs.items():
+        if seq.bag in bags:  # one bag holding both sides
+            bags[seq.bag]["sides"].append(key)
+            continue
+        n = seq.notes
+        cut = None
+        if n.cut_short is not None:
+            c = n.cut_short
+            cut = {"messages_kept": c.messages, "last_log_time_s": (c.last_log_time_ns or 0) / 1e9,
+                   "messages_lost": c.lost_messages}
+        bags[seq.bag] = {"bag": seq.bag, "sides": [key], "frames": len(seq), "flags": list(n.flags),
+                         "colour_without_depth": n.colour_without_depth, "duplicate_stamps": n.duplicate_stamps,
+                         "out_of_order_stamps": n.out_of_order_stamps, "gaps_s": [list(g) for g in n.gaps],
+                         "cut_short": cut}
+    flags = sorted({f for b in bags.values() for f in b["flags"]})
+    atomic_write_json(out / INPUTS_JSON, {"schema": INPUTS_SCHEMA, "flags": flags, "bags": list(bags.values())})
 
 
 def write_side(out: Path, sm: SideMap) -> None:

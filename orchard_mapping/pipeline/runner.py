@@ -4,7 +4,6 @@ result."""
 from __future__ import annotations
 
 import logging
-import shutil
 import time
 from dataclasses import dataclass
 from pathlib import Path
@@ -15,9 +14,16 @@ from orchard_mapping.config import OrchardConfig, dump_yaml
 from orchard_mapping.core.sidemap import SideMap
 from orchard_mapping.errors import AlignmentError, MergeRefusedError
 from orchard_mapping.io.results import atomic_write_text, staged_folder, write_timings, write_trees
-from orchard_mapping.pipeline.outputs import MERGE_OUTPUTS, write_landmarks, write_merge, write_side, write_tree_cloud
+from orchard_mapping.pipeline.outputs import (
+    RUN_OUTPUTS,
+    write_inputs,
+    write_landmarks,
+    write_merge,
+    write_side,
+    write_tree_cloud,
+)
 from orchard_mapping.pipeline.side import PendingSide, reconstruct_drive, reconstruct_side_later
-from orchard_mapping.pipeline.sides import DRIVE, Progress, Timings, open_sides, side_mask
+from orchard_mapping.pipeline.sides import DRIVE, SIDES, Progress, Timings, open_sides, side_mask
 from orchard_mapping.pipeline.traits import merge_and_measure
 from orchard_mapping.pipeline.trunks import TrunkWorker
 
@@ -45,19 +51,29 @@ def run(front: str | Path, back: str | Path | None, out: str | Path, cfg: Orchar
     succeeded: a failed run leaves no half-written result (earlier results in `out` stay as they were).
     """
     out = Path(out)
-    with staged_folder(out) as stage:
+    # RUN_OUTPUTS: the set written replaces an earlier run's whole, its merge outputs included where this
+    # run's merge was refused (they would contradict the sides now beside them)
+    with staged_folder(out, replaces=RUN_OUTPUTS) as stage:
         result = _run(Path(front), Path(back) if back is not None else None, stage, cfg, progress, trunk_worker)
     if result.merge_refused is not None:
-        # The sides' own results are complete and stay; the merge is not guessed (exit code 2), and
-        # an earlier run's merge outputs in `out` would now contradict them.
-        for name in MERGE_OUTPUTS:
-            for f in out.glob(name):
-                shutil.rmtree(f) if f.is_dir() else f.unlink()
+        # The sides' own results are complete and stay; the merge is not guessed (exit code 2).
         raise MergeRefusedError(
             f"the two sides were not merged: {result.merge_refused}. Each side's results (trajectories, "
             f"clouds, trunks.json) are in {out}; no side_merge.json and no trees in map were written. "
             "Run with --set merge.method=off to reconstruct the sides without trying to merge them.")
     return RunResult(out, result.sides, result.timings, result.merge_refused)
+
+
+def _one_side(sides: dict[str, SideMap], bag: Path, cfg: OrchardConfig, drive: bool) -> str:
+    """Why a merge asked for cannot be made of one bag that gave one side only."""
+    have = ", ".join(sides) or "no"
+    missing = " and ".join(s for s in SIDES if s not in sides)
+    if drive:
+        why = (f"the camera's path in {bag} has no U-turn to the {missing} side (a recording of one side? give "
+               f"the {missing} side's bag as the second bag)")
+    else:
+        why = f"the side topic {cfg.input.topics.side} labels no frame of {bag} '{missing}'"
+    return f"only the {have} side is in the input: {why}"
 
 
 def _run(front: Path, back: Path | None, out: Path, cfg: OrchardConfig, progress: Progress | None,
@@ -66,10 +82,13 @@ def _run(front: Path, back: Path | None, out: Path, cfg: OrchardConfig, progress
     t0 = t_start = time.perf_counter()
     seqs = open_sides(front, back, cfg)
     timings.add("read_bags", time.perf_counter() - t0)
+    write_inputs(out, seqs)
+    drive = DRIVE in seqs
     labelled = back is None
     sides: dict[str, SideMap] = {}
     refused: str | None = None
     # Two sides with trunks: the first side's trunks are modelled in a worker process while the next is finished
+    abandon = False
     worker = (TrunkWorker() if trunk_worker and cfg.trunks.source != "off" and cfg.input.mode == "rgbd"
               and (DRIVE in seqs or len(seqs) > 1) else None)
     try:
@@ -95,7 +114,10 @@ def _run(front: Path, back: Path | None, out: Path, cfg: OrchardConfig, progress
             write_side(out, sides[side])
         if cfg.trunks.source != "off" and cfg.input.mode == "rgbd":
             write_landmarks(out, sides, cfg)
-            if cfg.merge.method != "off" and set(sides) == {"front", "back"}:
+            if cfg.merge.method != "off" and set(sides) != set(SIDES):
+                refused = _one_side(sides, front, cfg, drive)
+                log.warning("side merge refused: %s", refused)
+            elif cfg.merge.method != "off":
                 t0 = time.perf_counter()
                 traits_s = 0.0
                 try:
@@ -110,9 +132,12 @@ def _run(front: Path, back: Path | None, out: Path, cfg: OrchardConfig, progress
                     write_tree_cloud(out, labels, trees)
                 timings.add("merge", time.perf_counter() - t0 - traits_s)
                 timings.add("traits", traits_s)
+    except BaseException:
+        abandon = True  # the run is over (an error, Ctrl-C): the worker's job is not waited for
+        raise
     finally:
         if worker is not None:
-            worker.close()
+            worker.close(abandon=abandon)
     timings.wall_s = time.perf_counter() - t_start
     write_timings(out / "timings.json", timings.stages, frames=timings.frames,
                   recording_duration_s=timings.recording_duration_s, wall_s=timings.wall_s,

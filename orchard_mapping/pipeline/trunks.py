@@ -5,9 +5,11 @@ these jobs beside the main one (`TrunkWorker`: its jobs, `TrunkJob` and `BandPai
 
 from __future__ import annotations
 
+import contextlib
 import logging
+import signal
 import time
-from collections.abc import Callable
+from collections.abc import Callable, Iterator
 from concurrent.futures import Future
 from dataclasses import dataclass, replace
 
@@ -254,6 +256,13 @@ class TrunkWorker:
             from concurrent.futures import ProcessPoolExecutor
 
             self._pool = ProcessPoolExecutor(1, mp_context=multiprocessing.get_context("spawn"))
+            with _sigint_held():  # the process is started by the first submit
+                self._submit_waiting()
+        else:
+            self._submit_waiting()
+
+    def _submit_waiting(self) -> None:
+        assert self._pool is not None
         for fn, job, future in self._waiting:
             self._pool.submit(fn, job).add_done_callback(lambda f, out=future: _pass_on(f, out))
         self._waiting = []
@@ -269,12 +278,40 @@ class TrunkWorker:
             log.warning("the trunk worker process stopped (%s); %s runs here instead", err, fn.__name__)
             return fn(job)
 
-    def close(self) -> None:
+    def close(self, abandon: bool = False) -> None:
+        """Shut the process down once its job is done; abandon: at once (a stopped run: Ctrl-C should not wait
+        the seconds a side's trunks take)."""
         for _, _, future in self._waiting:
             future.cancel()
         self._waiting = []
         if self._pool is not None:
+            if abandon:
+                # ProcessPoolExecutor has no public way to stop a busy worker before Python 3.14's
+                # terminate_workers; its pool then breaks, which shutdown below handles
+                stop = getattr(self._pool, "terminate_workers", None)
+                if stop is not None:
+                    stop()
+                else:
+                    for proc in list(getattr(self._pool, "_processes", {}).values()):
+                        proc.terminate()
             self._pool.shutdown(wait=True, cancel_futures=True)
+
+
+@contextlib.contextmanager
+def _sigint_held() -> Iterator[None]:
+    """SIGINT blocked in this thread while it starts the worker process, which keeps the blocked mask for its
+    life (it is inherited across fork and exec): Ctrl-C reaches every process of the terminal's group, and the
+    worker, hit in its imports or in a job, printed a traceback of its own. The main process stops the run and
+    shuts the worker down. Blocked, not ignored: a Ctrl-C meanwhile is delivered here once the mask is restored
+    (or at once to another thread of the process), not lost."""
+    if not hasattr(signal, "pthread_sigmask"):  # not POSIX: no process group gets the signal either
+        yield
+        return
+    before = signal.pthread_sigmask(signal.SIG_BLOCK, {signal.SIGINT})
+    try:
+        yield
+    finally:
+        signal.pthread_sigmask(signal.SIG_SETMASK, before)
 
 
 def _pass_on(done: Future, out: Future) -> None:
