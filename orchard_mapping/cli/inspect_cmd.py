@@ -73,8 +73,8 @@ def truth_table(truth: dict) -> Table:
     return t
 
 
-def sides_table(truth: dict) -> Table:
-    t = Table(title="Recordings (ground truth)")
+def sides_table(truth: dict, title: str = "") -> Table:
+    t = Table(title=f"{title}Recordings (ground truth)")
     for col in ("side", "bag", "frame", "poses", "path m", "duration s"):
         t.add_column(col)
     for side, s in truth["sides"].items():
@@ -103,5 +103,23 @@ def inspect_path(path: Path, console: Console) -> None:
             console.print(table)
     if truth_path.is_file():
         truth = json.loads(truth_path.read_text())
+        if "rows" in truth and "drive" in truth:  # a simulated block (sim.block): each row's truth beside it
+            console.print(block_table(truth))
+            for row in truth["rows"]:
+                row_truth = json.loads((path / row["truth"]).read_text())
+                console.print(sides_table(row_truth, f"row {row['row']}: "))
+                console.print(truth_table(row_truth))
+            return
         console.print(sides_table(truth))
         console.print(truth_table(truth))
+
+
+def block_table(truth: dict) -> Table:
+    t = Table(title=f"Block (scenario {truth['scenario']}, seed {truth['seed']}): one drive, "
+                    f"{truth['drive']['frames']} frames in bag {truth['drive']['bag']}")
+    for col in ("row", "y m", "trees", "front frames", "back frames"):
+        t.add_column(col, justify="right")
+    for row in truth["rows"]:
+        t.add_row(str(row["row"]), f"{row['y_m']:.2f}", ", ".join(map(str, row["tree_ids"])),
+                  str(row["passes"]["front"]["frames"]), str(row["passes"]["back"]["frames"]))
+    return t

@@ -153,6 +153,11 @@ def run(
                                         "(an earlier result there is left as it was)"))
         raise typer.Exit(EXIT_INTERRUPTED) from err
     t = result.timings
+    if result.block is not None:  # a drive along several rows: a folder per row
+        for row in result.block.rows:
+            sides = ", ".join(f"{side} {n} keyframes" for side, n in row.keyframes.items())
+            how = f"{row.trees} trees" if not row.message else f"not measured: {row.message}"
+            console.print(f"row {row.row} ({sides}): {how}; {out / row.folder}")
     for side, sm in result.sides.items():
         trunks = f", {len(sm.trunks)} trunks" if cfg.trunks.source != "off" else ""
         console.print(f"{side}: {len(sm.keyframe_stamps)} keyframes, {len(sm.observations)} observations{trunks}")
@@ -210,16 +215,30 @@ def evaluate(
     as_json: bool = typer.Option(False, "--json", help="Print the metrics as JSON (for CI and benchmarks)."),
     config: Optional[Path] = typer.Option(None, help="Configuration file (evaluate.match_radius_m)."),
 ) -> None:
-    """Compare a result folder with the simulator's ground truth; print one table."""
+    """Compare a result folder with the simulator's ground truth; print one table (a block's: one line per row)."""
     from orchard_mapping.config import load_config
     from orchard_mapping.errors import OrchardMappingError
     from orchard_mapping.eval import evaluate_result
+    from orchard_mapping.eval.block import evaluate_block, is_block_truth
 
     try:
         cfg = load_config(config)
-        report = evaluate_result(truth, result, match_radius_m=cfg.evaluate.match_radius_m)
+        if is_block_truth(truth):  # a simulated block: each row of the result against its row
+            block = evaluate_block(truth, result, match_radius_m=cfg.evaluate.match_radius_m)
+        else:
+            report = evaluate_result(truth, result, match_radius_m=cfg.evaluate.match_radius_m)
     except OrchardMappingError as err:
         raise _fail(err) from err
+    if is_block_truth(truth):
+        if as_json:
+            typer.echo(json.dumps(block.to_dict(), indent=1))
+        else:
+            console.print(block.table())
+            for r in block.rows:
+                if r.report is not None:
+                    console.print(f"row {r.row}")
+                    console.print(r.report.per_tree_table())
+        return
     if as_json:
         typer.echo(json.dumps(report.to_dict(), indent=1))
     else:

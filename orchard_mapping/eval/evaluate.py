@@ -301,7 +301,7 @@ def _segmentation_part(truth_dir: Path, result_dir: Path, pairs: tuple[TreePair,
 
 
 def evaluate_result(
-    truth_path: str | Path,
+    truth_path: str | Path | GroundTruth,
     result_dir: str | Path,
     match_radius_m: float = 0.3,
     *,
@@ -309,7 +309,8 @@ def evaluate_result(
     fruit_gate_factor: float = 1.5,
     scale_alignment: bool | None = None,
 ) -> EvaluationReport:
-    """Evaluate `result_dir` against `truth_path` (ground_truth.json).
+    """Evaluate `result_dir` against `truth_path` (ground_truth.json, or its GroundTruth already loaded: files
+    beside it, tree_surfaces.npz, are looked for beside GroundTruth.path).
 
     match_radius_m: largest 3D distance (m, map) of a matched tree pair.
     trajectory_max_dt_s: stamp association tolerance (s).
@@ -318,7 +319,7 @@ def evaluate_result(
     config.effective.yaml says `input.mode: rgb`.
     Raises GroundTruthError / ResultFormatError for unusable inputs.
     """
-    gt = load_ground_truth(truth_path)
+    gt = truth_path if isinstance(truth_path, GroundTruth) else load_ground_truth(truth_path)
     result_dir = Path(result_dir)
     if not result_dir.is_dir():
         raise ResultFormatError(f"{result_dir}: result folder not found")
@@ -405,7 +406,7 @@ def evaluate_result(
     else:
         skipped["trunks"] = f"{TRUNKS_JSON} absent"
 
-    segmentation = _segmentation_part(Path(truth_path).parent, result_dir, pairs, T_front_world, skipped)
+    segmentation = _segmentation_part(Path(gt.path).parent, result_dir, pairs, T_front_world, skipped)
 
     timings = None
     if (result_dir / TIMINGS_JSON).is_file():
@@ -414,7 +415,7 @@ def evaluate_result(
         skipped["timings"] = f"{TIMINGS_JSON} absent"
 
     return EvaluationReport(
-        truth_path=Path(truth_path),
+        truth_path=Path(gt.path),
         result_dir=result_dir,
         match_radius_m=float(match_radius_m),
         matching=matching,

@@ -3,6 +3,7 @@ result."""
 
 from __future__ import annotations
 
+import itertools
 import logging
 import time
 from dataclasses import dataclass
@@ -14,6 +15,7 @@ from orchard_mapping.config import OrchardConfig, dump_yaml
 from orchard_mapping.core.sidemap import SideMap
 from orchard_mapping.errors import AlignmentError, MergeRefusedError
 from orchard_mapping.io.results import atomic_write_text, staged_folder, write_timings, write_trees
+from orchard_mapping.pipeline.block import BlockResult, run_block
 from orchard_mapping.pipeline.outputs import (
     RUN_OUTPUTS,
     write_inputs,
@@ -22,7 +24,7 @@ from orchard_mapping.pipeline.outputs import (
     write_side,
     write_tree_cloud,
 )
-from orchard_mapping.pipeline.side import PendingSide, reconstruct_drive, reconstruct_side_later
+from orchard_mapping.pipeline.side import PendingSide, drive_rows, reconstruct_side_later
 from orchard_mapping.pipeline.sides import DRIVE, SIDES, Progress, Timings, open_sides, side_mask
 from orchard_mapping.pipeline.traits import merge_and_measure
 from orchard_mapping.pipeline.trunks import TrunkWorker
@@ -36,6 +38,7 @@ class RunResult:
     sides: dict[str, SideMap]
     timings: Timings
     merge_refused: str | None = None  # why the sides were not merged (run raises MergeRefusedError)
+    block: BlockResult | None = None  # a drive along several rows: each row's folder and how it went
 
 
 def run(front: str | Path, back: str | Path | None, out: str | Path, cfg: OrchardConfig,
@@ -54,14 +57,20 @@ def run(front: str | Path, back: str | Path | None, out: str | Path, cfg: Orchar
     # RUN_OUTPUTS: the set written replaces an earlier run's whole, its merge outputs included where this
     # run's merge was refused (they would contradict the sides now beside them)
     with staged_folder(out, replaces=RUN_OUTPUTS) as stage:
-        result = _run(Path(front), Path(back) if back is not None else None, stage, cfg, progress, trunk_worker)
+        result = _run(Path(front), Path(back) if back is not None else None, stage, cfg, progress, trunk_worker,
+                      rows_out=out)
+    if result.block is not None and result.block.refused:
+        rows = result.block.refused
+        raise MergeRefusedError(
+            f"{len(rows)} row(s) of the block not merged: {'; '.join(f'row {r.row}: {r.message}' for r in rows)}. "
+            f"Each row's results are in {out}/row_<k>; block.csv lists the trees of the rows measured.")
     if result.merge_refused is not None:
         # The sides' own results are complete and stay; the merge is not guessed (exit code 2).
         raise MergeRefusedError(
             f"the two sides were not merged: {result.merge_refused}. Each side's results (trajectories, "
             f"clouds, trunks.json) are in {out}; no side_merge.json and no trees in map were written. "
             "Run with --set merge.method=off to reconstruct the sides without trying to merge them.")
-    return RunResult(out, result.sides, result.timings, result.merge_refused)
+    return RunResult(out, result.sides, result.timings, result.merge_refused, result.block)
 
 
 def _one_side(sides: dict[str, SideMap], bag: Path, cfg: OrchardConfig, drive: bool) -> str:
@@ -77,7 +86,9 @@ def _one_side(sides: dict[str, SideMap], bag: Path, cfg: OrchardConfig, drive: b
 
 
 def _run(front: Path, back: Path | None, out: Path, cfg: OrchardConfig, progress: Progress | None,
-         trunk_worker: bool) -> RunResult:
+         trunk_worker: bool, rows_out: Path | None = None) -> RunResult:
+    """The run into `out` (run's staging folder); the rows of a drive along a block go to rows_out (each row's
+    folder written whole as it is done) and block.csv, block.json into `out`."""
     timings = Timings()
     t0 = t_start = time.perf_counter()
     seqs = open_sides(front, back, cfg)
@@ -96,7 +107,14 @@ def _run(front: Path, back: Path | None, out: Path, cfg: OrchardConfig, progress
             seq = seqs.pop(DRIVE)
             timings.frames += len(seq)
             timings.recording_duration_s += seq.duration
-            for side, sm in reconstruct_drive(seq, cfg, timings, progress, worker).items():
+            rows = drive_rows(seq, cfg, progress, worker)
+            row = next(rows, None)
+            if row is not None and not row.last:  # the drive went on along more rows: one result per row
+                block = run_block(rows_out or out, itertools.chain([row], rows), cfg, worker, timings)
+                return _block_done(out, cfg, timings, t_start, block)
+            for stage, sec in (row.timings.stages.items() if row is not None else ()):
+                timings.add(stage, sec)
+            for side, sm in (row.sides.items() if row is not None else ()):
                 sides[side] = sm
                 write_side(out, sm)
         pending: dict[str, PendingSide] = {}
@@ -144,3 +162,12 @@ def _run(front: Path, back: Path | None, out: Path, cfg: OrchardConfig, progress
                   merge_steps=timings.merge_steps)
     atomic_write_text(out / "config.effective.yaml", dump_yaml(cfg))
     return RunResult(out, sides, timings, refused)
+
+
+def _block_done(out: Path, cfg: OrchardConfig, timings: Timings, t_start: float, block: BlockResult) -> RunResult:
+    """The end of a block's run: the whole run's timings and configuration beside block.csv (each row has its own)."""
+    timings.wall_s = time.perf_counter() - t_start
+    write_timings(out / "timings.json", timings.stages, frames=timings.frames,
+                  recording_duration_s=timings.recording_duration_s, wall_s=timings.wall_s)
+    atomic_write_text(out / "config.effective.yaml", dump_yaml(cfg))
+    return RunResult(out, {}, timings, None, block)

@@ -1,13 +1,14 @@
 """One side of the row: the front end fed a frame at a time (`SideSession`), then loop detection, pose graph,
 bundle adjustment, TSDF fusion and the side's trunks (`finish_side_geometry`, `finish_side`); one side of a bag
-(`reconstruct_side`) or both sides of one drive round the row (`reconstruct_drive`)."""
+(`reconstruct_side`) or both sides of one drive round the row (`reconstruct_drive`), or of every row of a drive
+along a block (`drive_rows`)."""
 
 from __future__ import annotations
 
 import ctypes
 import logging
 import time
-from collections.abc import Callable
+from collections.abc import Callable, Iterator
 from dataclasses import asdict, dataclass, field, replace
 
 import numpy as np
@@ -22,6 +23,7 @@ from orchard_mapping.core.trunks import TrunkGround
 from orchard_mapping.core.types import CameraIntrinsics, RGBDFrame
 from orchard_mapping.errors import BagFormatError
 from orchard_mapping.io.bags import RGBDSequence
+from orchard_mapping.io.block import DrivePass
 from orchard_mapping.pipeline.fruit import FruitTap
 from orchard_mapping.pipeline.sides import BagKeyframeImages, KeyframeImages, Progress, Timings, frames_of, side_mask
 from orchard_mapping.pipeline.trunks import Detect, TrunkJob, TrunkWorker, fit_posts, model_trunks, with_trunks
@@ -279,40 +281,92 @@ def reconstruct_side_later(seq: RGBDSequence, side: str, cfg: OrchardConfig, tim
     return session.finish_later(timings, worker, here)
 
 
-def reconstruct_drive(seq: RGBDSequence, cfg: OrchardConfig, timings: Timings,
-                      progress: Progress | None = None, worker: "TrunkWorker | None" = None) -> dict[str, SideMap]:
-    """One continuous drive round a row without side labels: each frame tracked by its side's `SideSession`,
-    the side changing half way round the U-turn: core.sides.SideSplitter, the rule the live odometry node
-    follows (the bag has no side labels, or input.side_source says the trajectory tells the side)."""
+@dataclass(frozen=True)
+class DriveRow:
+    """A row of a drive, its sides reconstructed: what the drive gave of it once it turned into the next row or
+    ended. sides holds the sides it went along (one where it went along one side only)."""
+
+    row: int
+    sides: dict[str, SideMap]
+    passes: tuple[DrivePass, ...]
+    timings: Timings  # this row's stages, frames and duration
+    last: bool  # the drive ended on this row
+
+
+def drive_rows(seq: RGBDSequence, cfg: OrchardConfig, progress: Progress | None = None,
+               worker: "TrunkWorker | None" = None) -> Iterator[DriveRow]:
+    """One continuous drive without side labels, row by row: each frame tracked by its pass's `SideSession`, a
+    pass ending half way round each turn, where core.sides.SideSplitter (the rule the live odometry node follows)
+    says; the turns also tell the row (into the next row, or round the row end to its other side). A row is
+    finished (back end, fusion, trunks) and yielded as soon as the drive turns into the next row, before that
+    row is tracked: one row's sides are in memory at a time."""
     turns = SideSplitter(cfg.input.side_source)
+    row = 1
     sessions: dict[str, SideSession] = {}
-    session: SideSession | None = None
+    passes: list[DrivePass] = []
     seconds: dict[str, float] = {}
+    session: SideSession | None = None
+    first = 0
+    t0 = time.perf_counter()
     for i, frame in enumerate(seq):
         if session is None:
+            if turns.row() != row:
+                yield _finish_row(row, sessions, seconds, passes, worker, last=False)
+                row, sessions, passes, seconds = turns.row(), {}, [], {}
             side = turns.side()
             if side in sessions:
-                raise BagFormatError(f"the drive turns back to the {side} side at frame {i} ({frame.stamp:.3f} s): "
-                                     "one bag holds one drive round one row (front, U-turn, back)", bag=seq.bag)
+                raise BagFormatError(
+                    f"the drive turns back to the {side} side of row {row} at frame {i} ({frame.stamp:.3f} s): a drive "
+                    "goes along each side of a row once (front, U-turn round the row end, back; then, along a block, "
+                    "a turn into the next row)", bag=seq.bag)
             session = sessions[side] = SideSession(side, seq.intrinsics, cfg, BagKeyframeImages(seq, side, False),
                                                    bag=seq.bag)
-            t0 = time.perf_counter()
+            first, first_stamp, t0 = i, frame.stamp, time.perf_counter()
         pose, _ = session.add(frame)
         if turns.after_pose(pose):
-            seconds[session.side] = time.perf_counter() - t0
+            seconds[session.side] = time.perf_counter() - t0  # the front end's stage includes decoding the bag's images
+            passes.append(DrivePass(session.side, first, i, first_stamp, frame.stamp))
             session = None
         if progress:
             progress("drive", i + 1, len(seq))
+        last_i, last_stamp = i, frame.stamp
     if session is not None:
         seconds[session.side] = time.perf_counter() - t0
-    log.info("drive: %s", ", ".join(f"{side} {s.frames} frames" for side, s in sessions.items()))
+        passes.append(DrivePass(session.side, first, last_i, first_stamp, last_stamp))
+    if sessions:
+        yield _finish_row(row, sessions, seconds, passes, worker, last=True)
+
+
+def _finish_row(row: int, sessions: dict[str, SideSession], seconds: dict[str, float], passes: list[DrivePass],
+                worker: "TrunkWorker | None", last: bool) -> DriveRow:
+    """The row's sides finished: a side's trunks are modelled in the worker while the next side is finished."""
+    log.info("drive, row %d: %s", row, ", ".join(f"{p.side} {p.frames} frames" for p in passes))
+    timings = Timings()
+    timings.frames = sum(p.frames for p in passes)
+    timings.recording_duration_s = passes[-1].last_stamp - passes[0].first_stamp
     pending = {}
-    last = list(sessions)[-1]
+    names = list(sessions)
     for side, s in sessions.items():
-        s.seconds = seconds[side]  # the front end's stage includes decoding the bag's images
-        # a side's trunks are modelled in the worker while the next side is finished
-        pending[side] = s.finish_later(timings, worker, here=side == last)
-    return {side: p() for side, p in pending.items()}
+        s.seconds = seconds[side]
+        pending[side] = s.finish_later(timings, worker, here=side == names[-1])
+    return DriveRow(row, {side: p() for side, p in pending.items()}, tuple(passes), timings, last)
+
+
+def reconstruct_drive(seq: RGBDSequence, cfg: OrchardConfig, timings: Timings,
+                      progress: Progress | None = None, worker: "TrunkWorker | None" = None) -> dict[str, SideMap]:
+    """One continuous drive round one row without side labels (`drive_rows` of a drive of one row): its sides.
+    BagFormatError where the drive goes on to a second row (pipeline.block reads such a drive)."""
+    rows = drive_rows(seq, cfg, progress, worker)
+    row = next(rows, None)
+    if row is None:
+        raise BagFormatError("the drive holds no frame", bag=seq.bag)
+    if not row.last:
+        rows.close()
+        raise BagFormatError(f"the drive goes on to a second row after {row.passes[-1].last_stamp:.3f} s (a turn into "
+                             "the next row): a block, one result per row (`orchard-map run` reads it so)", bag=seq.bag)
+    for stage, sec in row.timings.stages.items():
+        timings.add(stage, sec)
+    return row.sides
 
 
 def release_freed_memory() -> None:

@@ -117,3 +117,11 @@ def test_a_simulated_block_is_one_bag_without_side_topic_and_a_truth_per_row(tmp
             # the side's odom frame is its first camera: the first trajectory pose is the identity
             np.testing.assert_allclose(s["trajectory"][0][1:], [0, 0, 0, 0, 0, 0, 1], atol=1e-6)
             assert s["trajectory"][0][0] == pytest.approx(row["passes"][side]["first_stamp"])
+    # `orchard-map inspect` reads the block back: its bag, its rows and each row's truth
+    from typer.testing import CliRunner
+
+    from orchard_mapping.cli.main import app
+
+    shown = CliRunner().invoke(app, ["inspect", str(res.out_dir)])
+    assert shown.exit_code == 0, shown.output
+    assert "Block (scenario block" in shown.output and "row 2: Recordings" in shown.output
