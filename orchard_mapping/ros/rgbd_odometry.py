@@ -297,6 +297,7 @@ class RGBDOdometryNode(Node):
         session: SideSession | None = None
         # the side of each frame and where a side ends: input.side_source's rule, as `orchard-map run` reads a drive
         sides = SideSplitter(self.params.config.input.side_source, self._side)
+        beyond_first_row = False
         while True:
             kind, item = self._work.get()
             if kind == "stop":
@@ -313,6 +314,16 @@ class RGBDOdometryNode(Node):
             if not side:
                 self._error("a frame came before any side was named (side topic or the `side` parameter; "
                             "input.side_source: topic)")
+                continue
+            if sides.row() > 1:
+                # A drive along a block turned into its next row. The graph's topics and the side merger hold one
+                # row's two sides: mapping the next row's as "front" and "back" again would merge it with this
+                # row's. Its frames are left to `orchard-map run` on the recording, which maps every row.
+                if not beyond_first_row:
+                    beyond_first_row = True
+                    self._error("the drive turned into a second row: the live graph maps one row; its frames "
+                                "from here on are not tracked (`orchard-map run` on the recording maps every "
+                                "row of a block)")
                 continue
             colour, depth, info = item
             try:
