@@ -105,7 +105,10 @@ class VisibilityAccumulator:
             self.fruit_seen |= (frac >= FRUIT_MIN_VISIBLE_FRACTION) & (counts >= FRUIT_MIN_PIXELS)
         # Per-pixel tree id and height above that tree's local ground.
         tree_cls = (cls == Cls.TRUNK) | (cls == Cls.BRANCH) | (cls == Cls.LEAF) | fr
-        tree = np.where(fr, self.fruit_tree[np.clip(inst, 0, None)] if len(self.fruit_tree) else -1, inst)
+        # a fruit pixel's instance is its fruit, any other's its tree: look fruit up where there is fruit only
+        # (a row with fewer fruit than trees indexed past the fruit table)
+        tree = inst.copy()
+        tree[fr] = self.fruit_tree[inst[fr]] if len(self.fruit_tree) else -1
         sel = tree_cls & (tree >= 0)
         if not sel.any():
             return

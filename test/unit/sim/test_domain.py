@@ -1,5 +1,7 @@
 """Domain randomisation of the detector's training scenes (orchard_mapping.sim.domain)."""
 
+import json
+
 import numpy as np
 import pytest
 
@@ -50,3 +52,16 @@ def test_a_low_hedge_is_built_to_its_height():
         hedge = scene.vertices[np.unique(scene.triangles[scene.tri_cls == Cls.HEDGE])]
         heights[h] = float(np.percentile(hedge[:, 2] - scene.terrain.height(hedge[:, 0], hedge[:, 1]), 99))
     assert heights[0.9] < 0.95 and heights[2.7] > 2.4
+
+
+def test_a_row_with_fewer_fruit_than_trees_is_simulated(tmp_path):
+    # dormant rows draw no fruit or a few: the truth looked fruit up for every pixel's instance, so a row
+    # with fewer fruit than trees indexed past the fruit table
+    from orchard_mapping.sim.simulate import simulate
+
+    over = {"row.n_trees": 3, "fruit.per_tree": [0, 1], "canopy.leaves_per_m3": 50.0, "camera.rate_hz": 1.0,
+            "camera.width": 160, "camera.height": 120, "camera.fx": 153.75, "camera.fy": 153.75,
+            "camera.cx": 79.5, "camera.cy": 59.5, "path.mode": "single_pass"}
+    sim = simulate(load_scenario("standard", over), 3, tmp_path / "row")
+    truth = json.loads((sim.out_dir / "ground_truth.json").read_text())
+    assert len(truth["trees"]) == 3 and sum(len(t["fruit"]) for t in truth["trees"]) <= 3
