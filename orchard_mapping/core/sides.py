@@ -8,7 +8,9 @@ of the camera's rotation since the side began (a turn about the vertical, whatev
 measuring the heading about the camera's own "up" put the switch 4 frames late with a camera pitched
 down 20 deg), from the tracked poses of the side's own reconstruction (its odom frame restarts at each
 side), so the drive needs no other sensor. The next side's reference is the last one turned by half a
-turn about the same axis.
+turn about the same axis; along the side it becomes the mean heading of the side's own frames (those within
+`start_deg` of it), and the side can end only once its heading has come that near it (a side begins half
+way round a turn: until that turn is over, a frame's sway must not end it again).
 
 A drive along a whole block (scenario `block`: row after row, each row's front side, the U-turn round its
 end, its back side, then a turn into the same alley the other way round to the next row's front side) turns
@@ -67,8 +69,14 @@ class UTurnSides:
     row: int = field(init=False, default=1)
     turns: list[Turn] = field(init=False, default_factory=list)  # every turn read so far, in order
     _ref: np.ndarray | None = field(init=False, default=None)  # (3, 3) the side's reference, its odom frame
+    _carried: np.ndarray = field(init=False, default_factory=lambda: np.eye(3))  # (3, 3) as carried over the turn
+    _sum: np.ndarray = field(init=False, default_factory=lambda: np.zeros(3))  # rad, the side's frames vs _carried
+    _n: int = field(init=False, default=0)
     _carry: np.ndarray = field(init=False, default_factory=lambda: np.eye(3))  # the reference vs its first frame
     _start: np.ndarray | None = field(init=False, default=None)  # (3,) odom: where the turn began
+    # the side may end: its heading has come within start_deg of its reference. A side begins half way round a
+    # turn, its heading ~90 deg off its reference; until that turn is over, a frame's sway must not end it again
+    _armed: bool = field(init=False, default=True)
 
     def __post_init__(self) -> None:
         if self.first_side not in OTHER:
@@ -85,12 +93,23 @@ class UTurnSides:
             return False
         R, p = T[:3, :3], T[:3, 3]
         if self._ref is None:
-            self._ref = R @ self._carry
+            self._ref = self._carried = R @ self._carry
+            self._sum, self._n = np.zeros(3), 0
         turned = Rotation.from_matrix(self._ref.T @ R).as_rotvec()  # (3,) rad, body axis x angle
         angle = float(np.linalg.norm(turned))
+        if angle <= np.radians(self.start_deg):
+            # Along the side: its reference becomes the mean heading of its frames so far. The carried one is a
+            # frame's turn off (the next side starts a frame after the one it was carried from), and over a
+            # block's turns that added up until a side's heading never came near its reference again.
+            self._sum += Rotation.from_matrix(self._carried.T @ R).as_rotvec()
+            self._n += 1
+            self._ref = self._carried @ Rotation.from_rotvec(self._sum / self._n).as_matrix()
+            turned = Rotation.from_matrix(self._ref.T @ R).as_rotvec()
+            angle = float(np.linalg.norm(turned))
+            self._armed = True
         if self._start is None or angle <= np.radians(self.start_deg):
             self._start = p.copy()  # the last place before the turn (a side that is all turn: its first)
-        if angle <= np.radians(self.turn_deg):
+        if angle <= np.radians(self.turn_deg) or not self._armed:
             return False
         # where the camera went since the turn began, along the direction it looked along the side
         back_m = -float((self._ref.T @ (p - self._start))[2])
@@ -102,6 +121,7 @@ class UTurnSides:
         self._carry = R.T @ (self._ref @ half)  # the next side's reference against its first frame (~ this one)
         self._ref = None
         self._start = None
+        self._armed = False
         if next_row:
             self.row += 1
             self.side = self.first_side

@@ -232,3 +232,14 @@ def test_after_a_rows_second_side_every_turn_leads_to_the_next_row():
         if det.update(T):
             break
     assert (det.row, det.side) == (2, "front") and abs(det.turns[0].back_m) < 1e-9
+
+
+def test_a_side_begun_half_way_round_a_turn_does_not_end_before_the_turn_is_over():
+    """Sway drawn afresh at every frame (2 deg) over ten rows: a side begins ~90 deg off its reference, and a
+    frame's sway once took it past 90 again two frames after the cut, ending the side at once; the rest of the
+    turn must be over (the heading back within start_deg of the side's) before a side can end."""
+    rows = 10
+    poses, truth = _block_drive(rows, sway_deg=2, rng=np.random.default_rng(1))
+    got, turns = _split(poses)
+    assert [got[0]] + [got[i] for i in _changes(got)] == [(r, s) for r in range(1, rows + 1) for s in ("front", "back")]
+    assert max(abs(g - t) for g, t in zip(_changes(got), _changes(truth), strict=True)) <= 3
