@@ -4,6 +4,7 @@ stage is handed: the progress callback and the run's `Timings`."""
 
 from __future__ import annotations
 
+import os
 import shutil
 import tempfile
 from collections.abc import Callable, Iterator
@@ -109,13 +110,46 @@ class BagKeyframeImages:
         pass
 
 
+SPOOL_PREFIX = "orchard-keyframes-"
+
+
+def _alive(pid: int) -> bool:
+    try:
+        os.kill(pid, 0)
+    except ProcessLookupError:
+        return False
+    except PermissionError:
+        return True
+    return True
+
+
+def reap_spools(root: str | Path) -> list[Path]:
+    """Remove the keyframe spool folders under `root` whose process is no longer running (a process killed
+    before it let go of its spool leaves it behind); the folders removed."""
+    gone = []
+    for d in Path(root).glob(f"{SPOOL_PREFIX}*-*"):
+        pid = d.name[len(SPOOL_PREFIX):].split("-", 1)[0]
+        if d.is_dir() and not d.is_symlink() and pid.isdigit() and not _alive(int(pid)):
+            shutil.rmtree(d, ignore_errors=True)
+            gone.append(d)
+    return gone
+
+
 class SpooledKeyframeImages:
     """Live: each keyframe's depth and colour are written to a temporary folder as the keyframe is made
     (~2 MB at 640x480, a few keyframes per second) and read back, unchanged, for fusion: memory does not
-    grow with the row, and fusion sees exactly what a second pass over the bag would give."""
+    grow with the row, and fusion sees exactly what a second pass over the bag would give.
+
+    The folder is named after the process that made it (`orchard-keyframes-<pid>-...`). Under a folder the
+    caller names (`root`: the live graph's scratch folder), a new spool first removes the folders of processes
+    no longer running: a node killed mid-row and started again leaves nothing behind. (In the system's
+    temporary folder, which other machines' processes may share, nothing is removed.)"""
 
     def __init__(self, root: str | Path | None = None) -> None:
-        self.dir = Path(tempfile.mkdtemp(prefix="orchard-keyframes-", dir=root))
+        if root is not None:
+            Path(root).mkdir(parents=True, exist_ok=True)
+            reap_spools(root)
+        self.dir = Path(tempfile.mkdtemp(prefix=f"{SPOOL_PREFIX}{os.getpid()}-", dir=root))
 
     def _paths(self, index: int) -> tuple[Path, Path]:
         return self.dir / f"{index:08d}_depth.npy", self.dir / f"{index:08d}_color.npy"
