@@ -23,10 +23,11 @@ def _nodes(context):
     out = LaunchConfiguration("out").perform(context)
     merged = [params, {"out_dir": out}]
     nodes = [
+        # restarted, they receive the latched side maps and trees again (docs/ros.md, "When a node dies")
         Node(package="orchard_mapping", executable="side_merger", name="side_merger", parameters=merged,
-             respawn=not bags, output="screen"),
+             respawn=True, output="screen"),
         Node(package="orchard_mapping", executable="trait_reporter", name="trait_reporter", parameters=merged,
-             respawn=not bags, output="screen"),
+             respawn=True, output="screen"),
         LifecycleNode(package="orchard_mapping", executable="trunk_detector", name="trunk_detector", namespace="",
                       parameters=[params], respawn=True, output="screen"),
         Node(package="orchard_mapping", executable="local_ground_fitter", name="local_ground_fitter",
@@ -37,7 +38,9 @@ def _nodes(context):
     if bags:
         sides = [a for s in ("front", "back")[: len(bags)] for a in ("--side", s)] if len(bags) <= 2 else []
         nodes.append(Node(package="orchard_mapping", executable="bag_player", name="bag_player",
-                          arguments=[*bags, "--rate", rate, *sides], output="screen"))
+                          # side changes once the odometry node acknowledged the images before them
+                          arguments=[*bags, "--rate", rate, "--side-acks", "--wait-reader", "rgbd_odometry", *sides],
+                          output="screen"))
     return nodes
 
 

@@ -136,6 +136,23 @@ class BagWriter:
 
     # -- writing
 
+    @property
+    def partial(self) -> Path | None:
+        """The hidden sibling folder the open bag is written into (None when not open)."""
+        return self._tmp
+
+    def flush(self) -> None:
+        """Put every message written so far on disk (the MCAP chunk being filled is closed and written): a
+        process killed after this leaves them readable in the partial folder (io.salvage). Costs a chunk per
+        flush; for a recorder of a few messages a second."""
+        storage = getattr(self._require_open(), "storage", None)
+        chunk = getattr(storage, "chunk", None)
+        if chunk is not None and chunk.bio.tell():
+            storage.close_chunk()
+        bio = getattr(storage, "bio", None)
+        if bio is not None:
+            bio.flush()
+
     def write_message(self, topic: str, stamp: float, msg: Any, msgtype: str) -> None:
         """Write any registered message type (ours included); `stamp` (s) is the log time only."""
         conn = self._connection(topic, msgtype)

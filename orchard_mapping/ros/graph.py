@@ -49,13 +49,17 @@ def graph_specs(bags: list[Path], *, rate: float = 1.0, start_s: float = 0.0, lo
     if side:
         odometry += ["-p", f"side:={side}"]
     specs = []
+    # Every node is started again when it dies, on bags too (docs/ros.md, "When a node dies"); what it had
+    # received comes back to it: the latched results of the others, and on a replay the whole recording (the
+    # player starts again with the odometry node). The recorder is stopped last (it takes what the others sent)
+    # and a restarted one carries on the bag its predecessor was writing.
     if record is not None:
         specs.append(NodeSpec("recorder", "recorder", (str(record), "--prefix", "/orchard", "--prefix", "/tf",
-                                                       "--prefix", "/tf_static")))
-    # a dead detector is started again also on bags: the odometry node flags what it could not see meanwhile
+                                                       "--prefix", "/tf_static"), restart=restart, stop_last=True))
+    # the request waiting for an answer is latched: a restarted detector answers it, nothing is flagged
     specs.append(NodeSpec("trunk_detector", "trunk_detector", ros_args, restart=restart))
-    # likewise the ground fitter: restarted, it gets the latched side geometry again and answers it (meanwhile,
-    # or if it never does, the odometry node fits the same grounds itself after ground_fitter_timeout_s)
+    # restarted, the ground fitter gets the latched side geometry again and answers it (if it never does, the
+    # odometry node fits the same grounds itself after ground_fitter_timeout_s: the same grounds)
     specs.append(NodeSpec("local_ground_fitter", "local_ground_fitter", ros_args, restart=restart))
     if bags:
         if drive and len(bags) != 1:
@@ -64,19 +68,25 @@ def graph_specs(bags: list[Path], *, rate: float = 1.0, start_s: float = 0.0, lo
             sides = sides or (["front", "back"][: len(bags)] if len(bags) <= 2 else None)
         two = drive or sides is None or {"front", "back"} <= set(sides)  # a merge to wait for
         odometry += ["-p", f"exit_after_sides:={(2 if drive else len(bags)) if not loop else 0}",
-                     "-p", "replayed_camera:=true", "-p", "detector_timeout_s:=60.0"]
+                     "-p", "replayed_camera:=true"]
         if two:
-            specs.append(NodeSpec("side_merger", "side_merger", (*ros_args, *out_arg, "-p", "exit_on_refusal:=true")))
+            # restarted, they receive the latched side maps (the merger) and trees (the reporter) again
+            # (a refused merge, exit code 2, and trees that cannot be written, 1, end the graph: no restart)
+            specs.append(NodeSpec("side_merger", "side_merger", (*ros_args, *out_arg, "-p", "exit_on_refusal:=true"),
+                                  restart=restart, final_codes=(2,)))
             specs.append(NodeSpec("trait_reporter", "trait_reporter",
                                   (*ros_args, *out_arg, "-p", f"exit_after_reports:={0 if loop else 1}"),
-                                  ends_graph=not loop))
+                                  ends_graph=not loop, restart=restart, final_codes=(1, 2)))
+        # restarted, the odometry node gets the recording again from its start (the player starts again with it):
+        # the same side maps, only later
         specs.append(NodeSpec("rgbd_odometry", "rgbd_odometry", tuple(odometry), ends_graph=not loop and not two,
-                              finite=two))
-        # the odometry node's own readers, not the recorder's, must have matched before the first frame
-        # and the trunk detector is up: the odometry node asks it about the first keyframes and gives up on a
-        # detector not there within 15 s (the flagged trees seen on a loaded machine came from late answers,
-        # detector_timeout_s, not from this; the wait only keeps a slow start from costing the first keyframes)
-        player = [str(b) for b in bags] + ["--rate", str(rate), "--start", str(start_s),
+                              finite=two, restart=restart, restart_with=("player",), final_codes=(1, 2)))
+        # the odometry node's own readers, not the recorder's, must have matched before the first frame, and the
+        # nodes it asks or feeds must be up (a node still importing the core takes the cores from the first
+        # frames). A side change is published once the odometry node acknowledged the images before it
+        # (--side-acks). --wait is only a guard: a graph not up by then is not played to (the player fails).
+        player = [str(b) for b in bags] + ["--rate", str(rate), "--start", str(start_s), "--wait", "600",
+                                           "--side-acks",
                                            "--wait-reader", "rgbd_odometry", "--wait-node", "trunk_detector",
                                            "--wait-node", "local_ground_fitter"]
         if two:  # the side merger and the trait reporter have started (imported the core) before the first frame

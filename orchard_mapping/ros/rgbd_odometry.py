@@ -35,19 +35,21 @@ from __future__ import annotations
 
 import array
 import json
+import os
 import queue
 import sys
 import threading
 import time
 import traceback
+import uuid
 from collections import deque
 from dataclasses import dataclass, field
+from pathlib import Path
 
 import numpy as np
 from geometry_msgs.msg import PoseStamped
 from nav_msgs.msg import Odometry, Path as PathMsg
 from orchard_mapping_msgs.msg import LocalGroundArray, SideMap as SideMapMsg, TrunkCylinderArray
-from rclpy.duration import Duration
 from rclpy.node import Node
 from sensor_msgs.msg import CameraInfo, Image, PointCloud2
 from std_msgs.msg import String
@@ -58,7 +60,12 @@ from orchard_mapping.core.sides import SIDE_END, SideSplitter
 from orchard_mapping.errors import OrchardMappingError
 from orchard_mapping.io.bags import camera_intrinsics, decode_frame, header_ns
 from orchard_mapping.io.pairing import Marker, Paired, RGBDPairer
-from orchard_mapping.io.sidemap_codec import SIDE_GEOMETRY_ENCODING, SIDE_MAP_ENCODING, encode_side_map
+from orchard_mapping.io.sidemap_codec import (
+    SIDE_GEOMETRY_ENCODING,
+    SIDE_MAP_ENCODING,
+    decode_side_map,
+    encode_side_map,
+)
 from orchard_mapping.pipeline import SIDES, SideSession, SpooledKeyframeImages, Timings
 from orchard_mapping.ros.clouds import cloud_to_msg
 from orchard_mapping.ros.finisher import GeometryInfo, SideFinishError, finish_in_child
@@ -74,13 +81,12 @@ from orchard_mapping.ros.messages import (
 from orchard_mapping.ros.params import ConfigParameters
 from orchard_mapping.ros.player import STATUS_TOPIC as PLAYER_STATUS
 from orchard_mapping.ros.qos import CAMERA, CAMERA_REPLAYED, LATCHED
-from orchard_mapping.ros.remote_detector import RemoteDetector
+from orchard_mapping.ros.remote_detector import DETECTOR_GUARD_S, RemoteDetector
 from orchard_mapping.ros.spin import StopNode, run_node
+from orchard_mapping.ros.supervisor import SCRATCH_ENV
 from orchard_mapping.ros.tf import Transforms, transform_msg
 
 __all__ = ["RGBDOdometryNode", "main"]
-
-STATUS_ACK_TIMEOUT_S = 2.0  # s, at most this long at the stop for the last status to be acknowledged
 
 
 def _pose(msg_pose, T: np.ndarray) -> None:
@@ -114,18 +120,20 @@ class RGBDOdometryNode(Node):
         super().__init__("rgbd_odometry")
         self.params = ConfigParameters(self)
         self.declare_parameter("side", "")  # the side being recorded when no side topic says ("front"/"back")
-        self.declare_parameter("spool_dir", "")  # where keyframe images wait for fusion ("": the system's temp)
+        # where keyframe images wait for fusion ("": the graph's scratch folder under `orchard-map launch`, which
+        # the supervisor removes when the graph ends, else the system's temporary folder)
+        self.declare_parameter("spool_dir", "")
         # replaying bags: exit (code 0) once this many side maps are published (0: run until stopped)
         self.declare_parameter("exit_after_sides", 0)
         # the camera topics come from the project's bag player: read them reliably (ros/qos.py)
         self.declare_parameter("replayed_camera", False)
         # "node": the trunk_detector node answers (the graph); "local": the configured detector in this process
         self.declare_parameter("detector", "local")
-        # s to wait for the trunk_detector node's answer before the keyframe goes without detections (its trunks
-        # are then flagged). Live, a late answer is no use; a replay must give the trees of `orchard-map run`
-        # however loaded the machine: with 5 s, 1 request of the 2-tree drive went unanswered in 2 of 5 test runs
-        # with a simulation or a detector training on the same 2 cores (`orchard-map launch --bag` sets 60)
-        self.declare_parameter("detector_timeout_s", 5.0)
+        # s: a guard against a trunk_detector node gone for good, not a cut-off: a keyframe waits for the answer
+        # to its own request (latched: a restarted detector answers it), however late (ros/remote_detector.py).
+        # Only when none comes within this long does it go without detections (its trunks flagged). A deadline of
+        # 5 s once left a request of the 2-tree drive unanswered in 2 of 5 test runs on a loaded machine.
+        self.declare_parameter("detector_guard_s", DETECTOR_GUARD_S)
         # "node": the local_ground_fitter node fits the trunks' local grounds (the graph); "local": this node does
         self.declare_parameter("ground_fitter", "local")
         # s to wait for the local_ground_fitter's answer before this node fits the grounds itself. Not a result's
@@ -147,6 +155,13 @@ class RGBDOdometryNode(Node):
         self._path: dict[str, PathMsg] = {}
         self.side_maps: dict[str, SideMap] = {}
         self.errors: list[str] = []
+        # What the status acknowledges to a bag player before and after a side change (ros/player.py): the header
+        # stamp of the last message received on each camera topic, the last side message; which run of this node
+        # it is (a restarted node has not received what was sent before it started)
+        self.incarnation = uuid.uuid4().hex[:12]
+        self._received_ns: dict[str, int | None] = {topics.color: None, topics.depth: None}
+        self._last_side: str | None = None
+        self._statement: tuple[int, dict[str, int]] | None = None  # the player's last, not yet acknowledged
         self._status = self.create_publisher(String, "/orchard/odometry/status", LATCHED)
         self._tf = Transforms(self)
         # the local_ground_fitter's latest answer per side, and a condition the finishing thread waits on for it
@@ -172,6 +187,8 @@ class RGBDOdometryNode(Node):
             t.start()
         self._done = threading.Event()
         self.create_timer(0.2, self._check_done)
+        self._publish_status()  # this incarnation is up
+        self._republish_saved()
 
     def _check_done(self) -> None:
         if self._done.is_set():
@@ -203,12 +220,16 @@ class RGBDOdometryNode(Node):
         c = self.counts
         detectors = list(self._detectors.items())
         msg = String()
-        msg.data = json.dumps({"colour": c.colour, "depth": c.depth, "paired": c.paired, "unpaired": c.unpaired,
+        msg.data = json.dumps({"incarnation": self.incarnation, "received_ns": dict(self._received_ns),
+                               "last_side": self._last_side,
+                               "colour": c.colour, "depth": c.depth, "paired": c.paired, "unpaired": c.unpaired,
                                "missed": c.missed, "lost_vs_player": c.lost_vs_player,
                                "processed": dict(c.processed), "finished": list(c.finished),
                                "failed": list(c.failed), "grounds_here": list(c.grounds_here),
                                "side_map_latency_s": dict(c.side_map_latency_s), "errors": list(self.errors),
-                               "detector_unanswered": {s: d.unanswered for s, d in detectors}})
+                               "detector_unanswered": {s: d.unanswered for s, d in detectors},
+                               "detector_refused": {s: d.refused for s, d in detectors},
+                               "detector_guard_expired": {s: d.guard_expired for s, d in detectors}})
         self._status.publish(msg)
 
     # -- input (executor thread): decode, pair, queue
@@ -219,8 +240,10 @@ class RGBDOdometryNode(Node):
 
     def _on_side(self, msg: String) -> None:
         side = msg.data.strip()
+        self._last_side = side
         if side != SIDE_END and side not in SIDES:
             self.get_logger().error(f"side topic: {side!r} is not one of {SIDES + (SIDE_END,)}; ignored")
+            self._publish_status()  # received: the player's acknowledgement
             return
         self._last_colour_ns = None  # a new recording: its stamps need not follow the last one's
         self._steps.clear()
@@ -230,14 +253,31 @@ class RGBDOdometryNode(Node):
         # machine when the side message flushed the pairing). The end of a recording flushes: no depth follows.
         self._pairer.add_marker(side)
         self._pair(flush=side == SIDE_END)
+        self._publish_status()  # the side change is in its place: the player's acknowledgement to go on
 
     def _on_player(self, msg: String) -> None:
-        """A bag player's count of what it published: the colour images this node never received are lost."""
+        """A bag player's status before a side change: what it published, and the stamp of the last message on
+        each camera topic. Once those last messages are here (`_acknowledge`), the colour images this node never
+        received are lost, and the status says so: the player's acknowledgement to go on with the side change."""
         try:
-            sent = int(json.loads(msg.data)["published"].get(self.params.config.input.topics.color, 0))
+            statement = json.loads(msg.data)
+            sent = int(statement["published"].get(self.params.config.input.topics.color, 0))
+            last = {str(t): int(ns) for t, ns in (statement.get("last_ns") or {}).items()}
         except (ValueError, KeyError, TypeError, AttributeError):
             self.get_logger().warning(f"unreadable player status: {msg.data[:200]!r}")
             return
+        self._statement = (sent, last)
+        self._acknowledge()
+
+    def _acknowledge(self) -> None:
+        """The player's last statement, once this node received the last message it names on each camera topic:
+        count the colour images lost and publish the status (the player's acknowledgement)."""
+        if self._statement is None:
+            return
+        sent, last = self._statement
+        if any(self._received_ns.get(t) != ns for t, ns in last.items() if t in self._received_ns):
+            return
+        self._statement = None
         lost = sent - self.counts.colour
         if lost > self.counts.lost_vs_player:
             self.get_logger().warning(f"{lost} colour image(s) the player sent never arrived")
@@ -250,6 +290,8 @@ class RGBDOdometryNode(Node):
         self._count_missed(ns)
         self._pairer.add_colour(ns, msg)
         self._pair()
+        self._received_ns[self.params.config.input.topics.color] = ns
+        self._acknowledge()
 
     def _count_missed(self, ns: int) -> None:
         """Colour stamps more than 1.5 camera periods apart (the period: the median of the last 30 steps) mean
@@ -270,8 +312,11 @@ class RGBDOdometryNode(Node):
 
     def _on_depth(self, msg: Image) -> None:
         self.counts.depth += 1
-        self._pairer.add_depth(header_ns(msg.header), msg)
+        ns = header_ns(msg.header)
+        self._pairer.add_depth(ns, msg)
         self._pair()
+        self._received_ns[self.params.config.input.topics.depth] = ns
+        self._acknowledge()
 
     def _pair(self, flush: bool = False) -> None:
         """Hand on what the pairing can decide now (io.pairing, as `read_rgbd` pairs a bag's images); frames
@@ -353,6 +398,8 @@ class RGBDOdometryNode(Node):
         cfg = self.params.config
         intr = camera_intrinsics(info, colour.width, colour.height, "camera topics", cfg.input.topics.camera_info)
         spool = self.get_parameter("spool_dir").value or None
+        if spool is None and os.environ.get(SCRATCH_ENV):  # the graph's scratch folder: reaped, then removed
+            spool = str(Path(os.environ[SCRATCH_ENV]) / "rgbd_odometry")
         self._path[side] = PathMsg()
         stamp_header(self._path[side].header, 0.0, getattr(cfg.frames, f"odom_{side}"))
         self.get_logger().info(f"{side} side: tracking")
@@ -360,7 +407,7 @@ class RGBDOdometryNode(Node):
         if self.get_parameter("detector").value == "node":
             if side not in self._detectors:  # one client per side: each would add a publisher and a subscription
                 self._detectors[side] = RemoteDetector(
-                    self, side, cfg.frames.camera, timeout_s=float(self.get_parameter("detector_timeout_s").value))
+                    self, side, cfg.frames.camera, guard_s=float(self.get_parameter("detector_guard_s").value))
             detect = self._detectors[side]
         return SideSession(side, intr, cfg, SpooledKeyframeImages(spool), bag=f"{side} side (camera topics)",
                            detect=detect)
@@ -469,7 +516,28 @@ class RGBDOdometryNode(Node):
         if wanted and len(self.counts.finished) + len(self.counts.failed) >= wanted:
             self._done.set()
 
-    def _publish_side_map(self, sm: SideMap) -> None:
+    def _saved_map(self, side: str) -> Path | None:
+        """Where a published side map is kept for a restarted node (the graph's scratch folder; None without)."""
+        scratch = os.environ.get(SCRATCH_ENV)
+        return Path(scratch) / "rgbd_odometry" / f"side_map_{side}.bin" if scratch else None
+
+    def _republish_saved(self) -> None:
+        """Publish again the side maps a killed predecessor published (kept in the graph's scratch folder): a
+        latched message goes with its publisher, and a side merger started later would not get them. Not
+        counted as finished here: a replay maps them again (the player starts again with this node)."""
+        for side in SIDES:
+            path = self._saved_map(side)
+            if path is None or not path.is_file():
+                continue
+            try:
+                sm = decode_side_map(path.read_bytes(), str(path))
+            except OrchardMappingError as err:
+                self.get_logger().warning(f"the {side} side map kept by a predecessor is unreadable: {err}")
+                continue
+            self._publish_side_map(sm, save=False)
+            self.get_logger().info(f"{side} side map published again (this node's predecessor made it)")
+
+    def _publish_side_map(self, sm: SideMap, save: bool = True) -> None:
         pubs = self._side_pubs(sm.side)
         path = PathMsg()
         stamp = float(sm.keyframe_stamps[-1])
@@ -489,21 +557,23 @@ class RGBDOdometryNode(Node):
         stamp_header(msg.header, stamp, sm.frame_id)
         msg.side, msg.encoding = sm.side, SIDE_MAP_ENCODING
         msg.keyframes, msg.trunks, msg.cloud_points = len(sm.keyframe_poses), len(sm.trunks), len(sm.cloud_points)
-        msg.data = array.array("B", encode_side_map(sm))  # from bytes at once (an iterable is copied per item)
+        data = encode_side_map(sm)
+        msg.data = array.array("B", data)  # from bytes at once (an iterable is copied per item)
         pubs["side_map"].publish(msg)
+        path = self._saved_map(sm.side) if save else None
+        if path is not None:  # for a restarted node to publish again (written whole, then moved into place)
+            path.parent.mkdir(parents=True, exist_ok=True)
+            tmp = path.with_suffix(f".{os.getpid()}.tmp")
+            tmp.write_bytes(data)
+            os.replace(tmp, path)
 
     def close(self) -> None:
         self._pair(flush=True)
         self._work.put(("stop", None))
         for t in self._threads:
             t.join(timeout=600)
-        # The last status (a side finished) is published just before the node stops: wait until the
-        # subscribers (the recorder) acknowledged it, or a recording of a replay may end one status short
-        # (a CI run once recorded `finished` without the last side).
-        try:
-            self._status.wait_for_all_acked(Duration(seconds=STATUS_ACK_TIMEOUT_S))
-        except Exception as err:  # noqa: BLE001 - a context already shut down: nothing left to wait for
-            self.get_logger().debug(f"status not acknowledged: {err}")
+        # The last status (a side finished) and the side maps are published just before the node stops: run_node
+        # waits until the subscribers (the side merger, the recorder) acknowledged them (ros/spin.py).
 
 
 def main(argv: list[str] | None = None) -> int:

@@ -107,18 +107,14 @@ class TraitReporterNode(Node):
         self.declare_parameter("exit_after_reports", 0)  # replaying bags: exit after this many (0: run on)
         self.reports = 0
         self._stop: int | None = None
-        self._stop_ticks = 1
         self._trees = self.create_publisher(TreeTraitsArray, TREES_TOPIC, LATCHED)
         self._markers = self.create_publisher(MarkerArray, MARKERS_TOPIC, LATCHED)
         self.create_subscription(TreeTraitsArray, MERGED_TREES_TOPIC, self._on_trees, LATCHED)
-        self.create_timer(0.5, self._check_done)
+        self.create_timer(0.2, self._check_done)
 
     def _check_done(self) -> None:
-        # the tick after the one that saw the last report: the recorder and RViz have had 0.5-1 s to take it
+        # the node exits once every subscriber (the recorder, RViz) acknowledged the last report (ros/spin.py)
         if self._stop is not None:
-            if self._stop_ticks > 0:
-                self._stop_ticks -= 1
-                return
             raise StopNode(self._stop)
 
     def _on_trees(self, msg: TreeTraitsArray) -> None:

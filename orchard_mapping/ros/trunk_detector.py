@@ -1,8 +1,10 @@
 """`trunk_detector`: a lifecycle node that finds trunks (and posts) in the colour images the odometry node
 selects, with the configured detector (`trunks.source`: the ONNX Mask R-CNN, or instance masks on disk).
 
-In:  `/orchard/<side>/detect_request`  sensor_msgs/Image, a keyframe's colour image (stamp: the keyframe's)
-Out: `/orchard/<side>/trunk_detections`  orchard_mapping_msgs/TrunkDetectionArray (same stamp)
+In:  `/orchard/<side>/detect_request`  sensor_msgs/Image, a keyframe's colour image (stamp: the keyframe's); latched,
+     so a detector that starts or restarts answers the request waiting for it (ros/remote_detector.py)
+Out: `/orchard/<side>/trunk_detections`  orchard_mapping_msgs/TrunkDetectionArray (same stamp); an image it cannot
+     read is answered with a refusal (image size 0, no detections), not left unanswered
 Lifecycle: `configure` creates the detector (the ONNX session: ~1 s and ~100 MB), `activate` starts
 answering, `deactivate` stops, `cleanup` releases the detector. With `autostart` (the default) the node
 configures and activates itself as it starts, as the launcher has no lifecycle manager; on a full ROS
@@ -20,9 +22,9 @@ from sensor_msgs.msg import Image
 from orchard_mapping.errors import OrchardMappingError
 from orchard_mapping.io.bags import decode_color, header_ns
 from orchard_mapping.pipeline import SIDES, trunk_detector
-from orchard_mapping.ros.detections import detections_to_msg
+from orchard_mapping.ros.detections import detections_to_msg, refusal_msg
 from orchard_mapping.ros.params import ConfigParameters
-from orchard_mapping.ros.qos import REPLAY
+from orchard_mapping.ros.qos import LATCHED, REPLAY
 from orchard_mapping.ros.spin import run_node
 
 __all__ = ["TrunkDetectorNode", "detections_topic", "main", "request_topic"]
@@ -59,8 +61,9 @@ class TrunkDetectorNode(LifecycleNode):
         return TransitionCallbackReturn.SUCCESS
 
     def on_activate(self, state: State) -> TransitionCallbackReturn:
+        # latched: the request waiting for its answer reaches a detector that (re)starts after it was sent
         self._subs = [self.create_subscription(Image, request_topic(side),
-                                               lambda msg, s=side: self._answer(s, msg), REPLAY) for side in SIDES]
+                                               lambda msg, s=side: self._answer(s, msg), LATCHED) for side in SIDES]
         return super().on_activate(state)
 
     def on_deactivate(self, state: State) -> TransitionCallbackReturn:
@@ -79,8 +82,9 @@ class TrunkDetectorNode(LifecycleNode):
         stamp = header_ns(msg.header) / 1e9
         try:
             dets = self._detect[side](decode_color(msg), stamp)
-        except OrchardMappingError as err:
-            self.get_logger().error(f"{side} image at {stamp:.3f} s: {err}")
+        except OrchardMappingError as err:  # said so: the odometry node does not wait for an answer
+            self.get_logger().error(f"{side} image at {stamp:.3f} s: {err}; refused")
+            self._pubs[side].publish(refusal_msg(stamp, msg.header.frame_id))
             return
         self._pubs[side].publish(detections_to_msg(dets, stamp, msg.header.frame_id, msg.width, msg.height))
         self.answered += 1

@@ -104,6 +104,8 @@ def test_supervisor_gives_every_node_loopback_discovery_and_restarts_a_dead_one(
     assert sup.run() == 0, log.getvalue()
     assert seen["ROS_AUTOMATIC_DISCOVERY_RANGE"] == "LOCALHOST"
     assert seen["FASTRTPS_DEFAULT_PROFILES_FILE"].endswith("fastdds_large_messages.xml")
+    # the graph's scratch folder, named to every node, is removed when the graph ends
+    assert seen["ORCHARD_GRAPH_SCRATCH"] == str(sup.scratch) and not sup.scratch.exists()
     assert any("player died (exit code -9)" in e for e in sup.events), sup.events
     assert any("player restarted (1 of at most 3)" in e for e in sup.events), sup.events
     assert all(r.proc.poll() is not None for r in sup.running.values())  # nothing left running
@@ -117,6 +119,16 @@ def test_supervisor_stops_the_graph_with_exit_1_when_a_node_dies_for_good(tmp_pa
     text = log.getvalue()
     assert "player died (exit code 2)" in text and "no such file or folder" in text, text
     assert not list(tmp_path.glob(".rec.*"))  # the stopped recorder left no half-written bag behind
+
+
+def test_a_node_that_fails_for_good_is_not_started_again(tmp_path):
+    """An exit code its spec names final (a refused merge, a side that cannot be mapped) stops the graph with 1 at
+    once: another start would fail the same way."""
+    log = io.StringIO()
+    sup = Supervisor([NodeSpec("player", "player", (str(tmp_path / "no_such_bag"),), restart=True,
+                               final_codes=(2,))], out=log)
+    assert _run(sup) == 1
+    assert "player failed (exit code 2): stopping the graph" in log.getvalue() and "restarted" not in log.getvalue()
 
 
 @pytest.mark.parametrize("bags, drive", [(["front", "back"], False), (["front"], False), (["drive"], True)])
@@ -137,8 +149,62 @@ def test_a_replay_waits_for_every_node_asked_during_the_first_frames_and_for_the
     assert "ground_fitter:=node" in specs["rgbd_odometry"].args and specs["local_ground_fitter"].restart
     # the merge's nodes exist only where two sides are merged, and are then waited for too
     assert waited - {"trunk_detector", "local_ground_fitter"} == ({"side_merger", "trait_reporter"} & set(specs))
-    # a replay waits for the detector's answers long enough to give the offline trees on a loaded machine
-    assert "detector_timeout_s:=60.0" in specs["rgbd_odometry"].args
+    # no wall-clock deadline decides a replay's result: the detector's answers are waited for (latched requests,
+    # ros/remote_detector.py), side changes are acknowledged by the odometry node, and the player's wait for the
+    # nodes is a guard it fails on rather than play to a graph that is not up
+    assert not any("timeout" in a for a in specs["rgbd_odometry"].args)
+    assert "--side-acks" in args and args[args.index("--wait") + 1] == "600"
+    # every node is started again when it dies; the player with the odometry node (the recording again from its
+    # start); the recorder, if any, is stopped last
+    assert all(s.restart for s in specs.values() if s.name != "player")
+    assert specs["rgbd_odometry"].restart_with == ("player",)
     # every node waited for starts before the player
     names = list(specs)
     assert all(names.index(n) < names.index("player") for n in waited | readers)
+
+
+def test_a_killed_recorder_is_restarted_and_carries_on_its_bag(small_bag, tmp_path):
+    """The recorder is killed (SIGKILL) while the player loops over a bag: started again, the new recorder copies
+    what the killed one wrote (every message was on disk once written) into its bag and records on; the bag
+    closed at the stop holds messages from before the kill and after, and the latched side topic's last
+    message, received again, once."""
+    out = tmp_path / "recorded"
+    log = io.StringIO()
+    sup = Supervisor([
+        NodeSpec("recorder", "recorder", (str(out), "--prefix", "/camera", "--prefix", "/orchard"), restart=True,
+                 stop_last=True),
+        NodeSpec("player", "player", (str(small_bag), "--side", "front", "--loop", "--wait", "60"), restart=True),
+    ], out=log)
+    killed: dict[str, float] = {}
+
+    def kill_then_stop():
+        deadline = time.monotonic() + 120
+        while "recorder" not in sup.running and time.monotonic() < deadline:
+            time.sleep(0.05)
+        pid = sup.running["recorder"].proc.pid
+
+        def written() -> int:  # bytes the recorder put on disk so far
+            return sum(f.stat().st_size for f in tmp_path.glob(".recorded.*/**/*.mcap"))
+
+        while written() < 600_000 and time.monotonic() < deadline:  # a loop of the bag or so
+            time.sleep(0.1)
+        os.kill(pid, signal.SIGKILL)
+        killed["at"] = time.time()  # the recorder's log times are the system clock's
+        while "carried on the bag" not in log.getvalue() and time.monotonic() < deadline:
+            time.sleep(0.1)
+        time.sleep(3.0)  # the new recorder records on
+        sup.stop()
+
+    threading.Thread(target=kill_then_stop, daemon=True).start()
+    assert sup.run() == 0, log.getvalue()
+    text = log.getvalue()
+    assert "recorder died (exit code -9)" in text and "carried on the bag of a recorder that was killed" in text, text
+    assert out.is_dir() and not list(tmp_path.glob(".recorded.*")), text  # one bag, closed; no partial left
+    colour = np.array([m.log_time_ns for m in iter_raw(out, [COLOR])]) / 1e9
+    # what the killed recorder wrote (a loop of the bag or so) and what the new one recorded
+    assert (colour < killed["at"]).sum() >= N_FRAMES // 2 and (colour > killed["at"]).sum() > 0, \
+        (len(colour), colour.min() - killed["at"], colour.max() - killed["at"])
+    # the side topic is latched: its last message, received again by the new recorder, is written once (the loops
+    # alternate "front" and "end"; a message written twice would repeat one)
+    sides = [m.data for _, m in iter_messages(out, "/orchard/side")]
+    assert sides[0] == "front" and all(a != b for a, b in zip(sides, sides[1:], strict=False)), sides

@@ -127,3 +127,49 @@ def test_a_side_waits_for_the_ground_fitters_answer_to_its_own_geometry(ground_n
     assert got[0].ground is None and got[0].wide_ground is None and node.counts.grounds_here == []
     assert node._ask_ground_fitter({**info, "stamp": 9.5}, b"payload") is None  # no answer within 0.5 s
     assert node.counts.grounds_here == ["front"] and not node.errors
+
+
+def test_a_restarted_node_publishes_again_the_side_maps_its_predecessor_published(tmp_path, monkeypatch):
+    """Under `orchard-map launch` each side map published is kept in the graph's scratch folder: a node started
+    again after a death publishes them again (a latched message goes with its publisher), without counting them
+    as finished (a replay maps them again)."""
+    import importlib.util
+    from pathlib import Path
+
+    from orchard_mapping_msgs.msg import SideMap as SideMapMsg
+
+    from orchard_mapping.io.sidemap_codec import decode_side_map, encode_side_map
+    from orchard_mapping.ros.qos import LATCHED
+    from orchard_mapping.ros.rgbd_odometry import RGBDOdometryNode
+
+    spec = importlib.util.spec_from_file_location(
+        "sidemap_codec_cases", Path(__file__).parents[1] / "unit" / "io" / "test_sidemap_codec.py")
+    cases = importlib.util.module_from_spec(spec)
+    spec.loader.exec_module(cases)
+    sm = cases._side_map(np.random.default_rng(3))
+    monkeypatch.setenv("ORCHARD_GRAPH_SCRATCH", str(tmp_path))
+    (tmp_path / "rgbd_odometry").mkdir()
+    (tmp_path / "rgbd_odometry" / "side_map_front.bin").write_bytes(encode_side_map(sm))
+    rclpy.init()
+    got = []
+    try:
+        listener = rclpy.create_node("side_map_listener")
+        listener.create_subscription(SideMapMsg, "/orchard/front/side_map", got.append, LATCHED)
+        node = RGBDOdometryNode()
+        try:
+            deadline = time.monotonic() + 30
+            while not got and time.monotonic() < deadline:
+                rclpy.spin_once(listener, timeout_sec=0.1)
+            assert got and decode_side_map(bytes(got[0].data)).keyframe_stamps.tolist() == sm.keyframe_stamps.tolist()
+            assert node.counts.finished == []
+            # a side map published is kept for the next start
+            (tmp_path / "rgbd_odometry" / "side_map_front.bin").unlink()
+            node._publish_side_map(sm)
+            assert (tmp_path / "rgbd_odometry" / "side_map_front.bin").read_bytes() == encode_side_map(sm)
+        finally:
+            node._finish.put(None)
+            node._work.put(("stop", None))
+            node.destroy_node()
+            listener.destroy_node()
+    finally:
+        rclpy.try_shutdown()

@@ -1,8 +1,10 @@
 """The node graph against `orchard-map run`: `orchard-map launch --bag front --bag back --record --out`
 replays both sides of the 2-tree standard row at 1x (player, odometry, trunk detector, local ground fitter,
-side merger, trait reporter and recorder each in its own process, loopback DDS): the side maps hold the trunks the offline run
-found, at the same places, no frame is lost on the way, and the trees published (TreeTraitsArray, decoded
-from the recording) and written are the offline run's."""
+side merger, trait reporter and recorder each in its own process, loopback DDS) with a CPU hog beside it: the
+side maps hold the trunks the offline run found, at the same places, no frame is lost on the way, and the
+trees published (TreeTraitsArray, decoded from the recording) and written are the offline run's. The result
+must not depend on the machine's load: no wall-clock deadline decides it (docs/ros.md). Nodes killed mid-row:
+test_graph_faults.py."""
 
 from __future__ import annotations
 
@@ -14,6 +16,8 @@ import yaml
 from typer.testing import CliRunner
 
 pytest.importorskip("rclpy")
+
+from graph_checks import same_trees  # noqa: E402
 
 from orchard_mapping.cli.main import app  # noqa: E402
 from orchard_mapping.io.bags import iter_messages, iter_raw  # noqa: E402
@@ -32,7 +36,7 @@ def _cylinders(bag, side: str):
                                for c in m.cylinders]
 
 
-def test_launched_graph_on_bags_gives_the_offline_trunks(standard_row, tmp_path):
+def test_launched_graph_on_bags_gives_the_offline_trunks(standard_row, tmp_path, cpu_hog):
     sim, offline = standard_row
     params = yaml.safe_load((config_dir() / "ros_params.yaml").read_text())
     params["/**"]["ros__parameters"]["trunks"].update(source="masks", masks_dir=str(sim / "masks"))
@@ -42,6 +46,7 @@ def test_launched_graph_on_bags_gives_the_offline_trunks(standard_row, tmp_path)
                                    "--record", str(rec), "--params", str(tmp_path / "params.yaml"), "--out", str(out)])
     assert res.exit_code == 0, res.output[-4000:]
     assert "trait_reporter finished: stopping the graph" in res.output, res.output[-4000:]
+    assert cpu_hog.cpu_seconds() > 10 or not cpu_hog.procs  # the hog ran beside the graph
 
     status = [json.loads(m.data) for _, m in iter_messages(rec, "/orchard/odometry/status")][-1]
     sent = sum(1 for bag in ("front", "back") for _ in iter_raw(sim / bag, ["/camera/color/image_raw"]))
@@ -50,6 +55,8 @@ def test_launched_graph_on_bags_gives_the_offline_trunks(standard_row, tmp_path)
     assert status["unpaired"] == status["missed"] == status["lost_vs_player"] == 0, status
     assert sum(status["processed"].values()) == sent and not status["errors"], status
     assert status["finished"] == ["front", "back"], status
+    # every detection request was answered (a late answer is waited for: nothing flagged for the load)
+    assert sum(status["detector_unanswered"].values()) == 0, status
     # the local_ground_fitter node answered both sides (the odometry node fitted no grounds itself)
     assert status["grounds_here"] == [], status
     # (a landmark found to be a trellis post has a ground there too, and is no trunk of trunks.json)
@@ -71,7 +78,7 @@ def test_launched_graph_on_bags_gives_the_offline_trunks(standard_row, tmp_path)
         assert len(path.poses) > 20 and path.header.frame_id == f"odom_{side}"
 
     # the trees: published by the trait reporter, as the offline run wrote them
-    _same_trees(rec, out, offline)
+    same_trees(rec, out, offline)
     merge = json.loads((out / "side_merge.json").read_text())
     offline_merge = json.loads((offline / "side_merge.json").read_text())
     assert merge["method"] == offline_merge["method"] == "semantic_ba"
@@ -111,35 +118,6 @@ def _same_tf(rec, T_front_back: np.ndarray) -> None:
     assert np.abs(D[:3, 3]).max() < 1e-3 and np.degrees(np.arccos(np.clip((np.trace(D[:3, :3]) - 1) / 2, -1, 1))) < 0.01
 
 
-def _same_trees(rec, out, offline) -> None:
-    """The trees the graph published (decoded from the recording) and wrote are the offline run's: same ids,
-    flags and per-side trunk ids, positions within 1 cm, diameters within 1 mm, heights within 1 cm, canopy
-    volumes within 2 %."""
-    offline_trees = read_trees(offline / "trees.json")
-    msgs = [m for _, m in iter_messages(rec, "/orchard/trees")]
-    assert len(msgs) == 1 and msgs[0].header.frame_id == "map", len(msgs)
-    live = msgs[0].trees
-    assert len(live) == len(offline_trees) >= 2, (len(live), len(offline_trees))
-    for m, t in zip(live, offline_trees, strict=True):
-        assert m.tree_id == t.id and list(m.flags) == list(t.flags), (m, t)
-        pos = np.array([m.position.x, m.position.y, m.position.z])
-        assert np.linalg.norm(pos - np.array(t.position)) < 0.01, (pos, t.position)  # 1 cm
-        if t.trunk_diameter_m is None:
-            assert np.isnan(m.trunk_diameter)
-        else:
-            assert abs(m.trunk_diameter - t.trunk_diameter_m) < 1e-3, (m.trunk_diameter, t.trunk_diameter_m)  # 1 mm
-        # height and canopy volume as offline (the same merge_and_measure on side maps equal within 1 mm)
-        assert t.height_m is not None and abs(m.height - t.height_m) < 0.01, (m.height, t.height_m)  # 1 cm
-        assert t.canopy_volume_m3 is not None and abs(m.canopy_volume - t.canopy_volume_m3) < 0.02 * t.canopy_volume_m3
-        assert m.fruit_count == -1  # not measured yet, as offline (null)
-        for side in ("front", "back"):
-            own = (t.per_side or {}).get(side)
-            assert getattr(m, f"trunk_id_{side}") == (own["trunk_id"] if own else -1)
-    written = read_trees(out / "trees.json")
-    assert [(w.id, w.flags) for w in written] == [(t.id, t.flags) for t in offline_trees]
-    assert max(np.linalg.norm(np.subtract(w.position, t.position)) for w, t in zip(written, offline_trees, strict=True)) < 0.01
-
-
 def test_one_drive_round_the_row_in_one_bag_gives_the_offline_trees(loop_row, tmp_path):
     """`orchard-map launch --bag loop --drive`: one bag of a continuous drive round the row, its side topic
     ignored (input.side_source=trajectory): the odometry node tells the sides by the camera's U-turn, as
@@ -163,59 +141,4 @@ def test_one_drive_round_the_row_in_one_bag_gives_the_offline_trees(loop_row, tm
         path = [m for _, m in iter_messages(rec, f"/orchard/{side}/keyframes")][-1]
         stamps = [ps.header.stamp.sec + 1e-9 * ps.header.stamp.nanosec for ps in path.poses]
         assert np.allclose(stamps, read_tum(offline / f"trajectory_{side}.tum").stamps, atol=1e-6), side
-    _same_trees(rec, out, offline)
-
-
-def test_a_killed_trunk_detector_is_restarted_and_the_trunks_it_missed_are_flagged(standard_row, tmp_path):
-    """The trunk detector is killed (SIGKILL) after it answered 10 requests of the front side: the supervisor
-    reports it and starts it again, the run still ends with the trees, and the trunks near the keyframes
-    that went unanswered meanwhile, and the trees they belong to, carry the flag `detector_unavailable_nearby`."""
-    import os
-    import signal
-    import subprocess
-    import sys
-    from pathlib import Path
-
-    sim, _ = standard_row
-    params = yaml.safe_load((config_dir() / "ros_params.yaml").read_text())
-    params["/**"]["ros__parameters"]["trunks"].update(source="masks", masks_dir=str(sim / "masks"))
-    (tmp_path / "params.yaml").write_text(yaml.safe_dump(params))
-    rec, out = tmp_path / "recorded", tmp_path / "out"
-    proc = subprocess.Popen([sys.executable, "-m", "orchard_mapping.cli.main", "launch", "--bag", str(sim / "front"),
-                             "--bag", str(sim / "back"), "--record", str(rec), "--params", str(tmp_path / "params.yaml"),
-                             "--out", str(out)],
-                            stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True)
-    lines, killed = [], None
-    try:
-        for line in proc.stdout:
-            lines.append(line)
-            if killed is None and "[trunk_detector]" in line and "answered 10 requests" in line:
-                pids = [int(p.name) for p in Path("/proc").iterdir() if p.name.isdigit()
-                        and b"orchard_mapping.ros.trunk_detector" in _cmdline(p)]
-                assert len(pids) == 1, pids
-                killed = pids[0]
-                os.kill(killed, signal.SIGKILL)
-        rc = proc.wait(timeout=600)
-    finally:
-        if proc.poll() is None:
-            proc.kill()
-    text = "".join(lines)
-    assert killed is not None, text[-4000:]
-    assert rc == 0, text[-4000:]
-    assert "trunk_detector died (exit code -9)" in text and "trunk_detector restarted" in text, text[-4000:]
-    status = [json.loads(m.data) for _, m in iter_messages(rec, "/orchard/odometry/status")][-1]
-    assert status["finished"] == ["front", "back"] and status["detector_unanswered"]["front"] > 0, status
-    msg = [m for _, m in iter_messages(rec, "/orchard/front/trunk_cylinders")][-1]
-    flagged = {c.tree_id for c in msg.cylinders if "detector_unavailable_nearby" in c.flags}
-    assert flagged, msg.cylinders
-    trees = read_trees(out / "trees.json")
-    assert {t.per_side["front"]["trunk_id"] for t in trees
-            if "detector_unavailable_nearby" in t.flags and "front" in (t.per_side or {})} == flagged, trees
-
-
-def _cmdline(p) -> bytes:
-    try:
-        return (p / "cmdline").read_bytes()
-    except OSError:
-        return b""
-
+    same_trees(rec, out, offline)
