@@ -112,13 +112,15 @@ def simulate(
 
 @app.command()
 def run(
-    front: Path = typer.Argument(..., help="Front-side bag (rosbag2 folder or .mcap), or one bag with the side topic."),
+    front: Path = typer.Argument(..., help="Front-side bag (rosbag2 folder or .mcap), or one bag with the side topic, "
+                                 "or one drive round the row or along a whole block (docs/usage.md)."),
     back: Optional[Path] = typer.Argument(None, help="Back-side bag; omit for a single bag labelled by side."),
     out: Path = typer.Option(..., help="Result folder (docs/results.md)."),
     config: Optional[Path] = typer.Option(None, help="Configuration file overlaid on config/default.yaml."),
     set_: list[str] = typer.Option([], "--set", help="Configuration override, e.g. --set trunks.source=masks."),
 ) -> None:
-    """Reconstruct each side of the row: trajectories, clouds, trunks and local grounds into the result folder."""
+    """Reconstruct each side of the row: trajectories, clouds, trunks and local grounds into the result folder
+    (a drive along a block: one such folder per row, OUT/row_<k>/, and OUT/block.csv)."""
     from rich.progress import BarColumn, MofNCompleteColumn, Progress, TextColumn, TimeRemainingColumn
 
     from orchard_mapping.config import load_config

@@ -9,7 +9,8 @@ One module per stage, each importing only those above it in this list:
 sides (the bags opened, a side's frames and keyframe images, the run's timings) -> trunks (trunk and post
 modelling, the trunk detector, the worker process) -> views (the trunk views kept beside the front end and in
 fusion) -> side (one side: front end, back end, fusion, its trunks) -> merge (the two sides merged, the trees)
--> traits (each tree's height and canopy volume, every point labelled) -> outputs (the result folder's files) -> runner (`run`).
+-> traits (each tree's height and canopy volume, every point labelled) -> outputs (the result folder's files)
+-> block (a drive along several rows: a result folder per row, block.csv) -> runner (`run`).
 """
 
 from orchard_mapping.pipeline.merge import (
