@@ -15,7 +15,7 @@ import numpy as np
 
 from orchard_mapping.errors import OrchardMappingError
 
-__all__ = ["CLASS_NAMES", "CLASS_POST", "CLASS_TRUNK", "Detection", "DetectorError", "OnnxTrunkDetector",
+__all__ = ["CLASS_NAMES", "CLASS_POST", "CLASS_TRUNK", "Detection", "DetectorError", "OnnxTrunkDetector", "letterbox",
            "OUTPUT_NAMES", "resolve_model_path"]
 
 # The model contract (docs/detector.md): these outputs, by name.
@@ -80,13 +80,37 @@ def resolve_model_path(model: str | Path) -> Path:
     return p
 
 
+def letterbox(img: np.ndarray, h: int, w: int) -> tuple[np.ndarray, tuple[float, float]]:
+    """img (H, W, 3) uint8 as an (h, w, 3) network input and the (x, y) scale from frame to input px.
+
+    Of the same aspect (within 1 %) the frame is resized to (h, w). Of another aspect it keeps its own:
+    resized to fit, at the top left, the rest filled with its mean colour. Stretched instead, a portrait
+    crop 318 x 719 px went into a 640 x 480 input 2x wider and 0.67x as tall, its trunk 3x wider for its
+    height than any trunk the network was trained on, and a 16:9 frame came in 1.33x taller.
+    """
+    import cv2
+
+    H, W = img.shape[:2]
+    if (H, W) == (h, w):
+        return img, (1.0, 1.0)
+    if abs((W / H) / (w / h) - 1.0) <= 0.01:
+        return cv2.resize(img, (w, h), interpolation=cv2.INTER_AREA), (w / W, h / H)
+    s = min(w / W, h / H)
+    nw, nh = min(w, max(1, round(W * s))), min(h, max(1, round(H * s)))
+    out = np.empty((h, w, 3), np.uint8)
+    out[:] = img.reshape(-1, 3).mean(axis=0).astype(np.uint8)
+    out[:nh, :nw] = cv2.resize(img, (nw, nh), interpolation=cv2.INTER_AREA if s < 1 else cv2.INTER_LINEAR)
+    return out, (nw / W, nh / H)
+
+
 class OnnxTrunkDetector:
     """An instance-segmentation model in ONNX that follows the contract of docs/detector.md.
 
     Input: one float32 tensor (3, H, W) or (1, 3, H, W), RGB scaled to [0, 1]. Outputs by name:
     boxes (N, 4) px x1 y1 x2 y2, labels (N,) int class ids (1 trunk, 2 post), scores (N,),
     masks (N, 1, H, W) probabilities; all in input pixels. Frames are resized to the input size and
-    the results mapped back to the frame.
+    the results mapped back to the frame; a frame of another aspect than a fixed input is letterboxed
+    (`letterbox`), not stretched.
     """
 
     def __init__(self, path: str | Path, *, score_threshold: float = 0.5, mask_threshold: float = 0.5,
@@ -184,7 +208,7 @@ class OnnxTrunkDetector:
 
         H, W = img.shape[:2]
         h, w = self.input_hw or (H, W)
-        x = img if (h, w) == (H, W) else cv2.resize(img, (w, h), interpolation=cv2.INTER_AREA)
+        x, scale = letterbox(img, h, w)
         x = np.ascontiguousarray(x.transpose(2, 0, 1), np.float32) / np.float32(255.0)  # (3, h, w)
         if self.batched:
             x = x[None]
@@ -195,13 +219,14 @@ class OnnxTrunkDetector:
             raise DetectorError(f"trunk detector model {self.path}: {where}: inference failed on input "
                                 f"{tuple(x.shape)} ({first})") from err
         boxes, labels, scores, masks = (np.asarray(r) for r in res)
-        sx, sy = W / w, H / h
         full = masks.ndim == 4 and masks.shape[-2:] == (h, w)  # else box-relative (N, 1, M, M)
+        nh, nw = min(h, round(H * scale[1])), min(w, round(W * scale[0]))  # the frame's part of the input
         found = []
         for i in np.flatnonzero(scores >= self.score_threshold):
-            b = boxes[i] * np.array([sx, sy, sx, sy])
+            b = boxes[i] / np.array([scale[0], scale[1], scale[0], scale[1]])
             prob = masks[i, 0] if masks.ndim == 4 else masks[i]
             if full:
+                prob = prob[:nh, :nw]
                 if prob.shape != (H, W):
                     prob = cv2.resize(prob.astype(np.float32), (W, H), interpolation=cv2.INTER_LINEAR)
                 m = prob >= self.mask_threshold

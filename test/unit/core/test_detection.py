@@ -129,3 +129,32 @@ def test_an_image_of_the_wrong_type_is_named(tmp_path, constant_detector):
         det.detect(np.zeros((H, W, 3), np.float32), where="keyframe 7")
     with pytest.raises(DetectorError, match="got uint8 \\(48, 64\\)"):
         det.detect(np.zeros((H, W), np.uint8))
+
+
+def test_a_frame_of_another_aspect_is_letterboxed_not_stretched(tmp_path, constant_detector):
+    # a portrait frame (96 x 32 px) into the 48 x 64 input: resized by 0.5 to 48 x 16 at the input's left, the
+    # rest filled; a detection there maps back by the one scale (stretched, its x would have been halved again)
+    m = np.zeros((1, 1, H, W), np.float32)
+    m[0, 0, 10:40, 2:12] = 0.9
+    values = {"boxes": np.array([[2, 10, 12, 40]], np.float32), "labels": np.array([CLASS_TRUNK], np.int64),
+              "scores": np.array([0.9], np.float32), "masks": m}
+    det = OnnxTrunkDetector(_model(constant_detector, tmp_path / "p.onnx", values=values))
+    out = det.detect(np.zeros((2 * H, W // 2, 3), np.uint8))
+    assert len(out) == 1
+    np.testing.assert_allclose(out[0].box, [4, 20, 24, 80])
+    v, u = np.nonzero(out[0].mask)
+    assert out[0].mask.shape == (2 * H, W // 2)
+    assert (v.min(), v.max(), u.min(), u.max()) == (20, 79, 4, 23)
+
+
+def test_letterbox_keeps_the_aspect_and_fills_the_rest_with_the_frames_mean():
+    from orchard_mapping.core.detection import letterbox
+
+    frame = np.zeros((90, 160, 3), np.uint8)  # 16:9 into 4:3
+    frame[:, :80] = 200
+    x, scale = letterbox(frame, 48, 64)
+    assert x.shape == (48, 64, 3) and scale == pytest.approx((0.4, 0.4))
+    assert (x[:36, :32] == 200).all() and (x[:36, 32:] == 0).all()  # the frame, 0.4 of its size
+    assert (x[36:] == 100).all()  # below it: its mean colour
+    same, s2 = letterbox(np.full((96, 128, 3), 7, np.uint8), 48, 64)  # the input's own aspect: a plain resize
+    assert same.shape == (48, 64, 3) and s2 == (0.5, 0.5) and (same == 7).all()
