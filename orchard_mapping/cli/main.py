@@ -384,6 +384,8 @@ def export_detector(
     max_aspect: Optional[float] = typer.Option(None, help="Widest frame aspect (long / short side) resized to "
                                                "the input short side, if not as trained (4/3; 16/9 for "
                                                "1280x720 frames)."),
+    dynamic_input: bool = typer.Option(True, "--dynamic-input/--fixed-input", help="Leave the input's height "
+                                       "and width free (frames go in at their own size), or fix them at 480x640."),
 ) -> None:
     """Export trained weights to ONNX again with other inference settings (needs requirements-train.lock)."""
     try:
@@ -401,12 +403,13 @@ def export_detector(
         short = min_size if min_size is not None else json.loads(
             (record or weights.with_suffix(".json")).read_text())["settings"]["min_size"]
         overrides.update(min_size=short, max_size=long_side(short, max_aspect or 4 / 3))
+    overrides["dynamic_input"] = dynamic_input
     if rpn_pre_nms is not None:
         overrides["rpn_pre_nms_test"] = rpn_pre_nms
     if rpn_post_nms is not None:
         overrides["rpn_post_nms_test"] = rpn_post_nms
     try:
-        if any(v < 1 for v in overrides.values()):
+        if any(v < 1 for k, v in overrides.items() if k != "dynamic_input"):
             raise ValueError(f"export-detector settings must be positive, got {overrides}")
         reexport(weights, out, record, **overrides)
     except ValueError as err:

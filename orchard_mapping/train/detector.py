@@ -77,6 +77,9 @@ class TrainSettings:
     # Photometric jitter: "narrow" (the shipped model's steps 1-8) or "wide": also gamma, hue turns, grey
     # frames, JPEG artefacts and motion blur, for cameras and light the simulator does not draw.
     colour_jitter: str = "narrow"
+    # Export with a free input height and width (export_onnx); False: fixed at 480 x 640 (the models up to
+    # the shipped one's step 8).
+    dynamic_input: bool = True
 
 
 def long_side(short_side: int, aspect: float = 4 / 3) -> int:
@@ -395,8 +398,12 @@ def export_onnx(model, out: Path, s: TrainSettings, size: tuple[int, int] = (480
     out.parent.mkdir(parents=True, exist_ok=True)
     tmp = out.with_name(f".{out.name}.partial")
     x = torch.rand(3, *size)
+    # The input's height and width are left free: a frame of any size and aspect goes in as it is and the
+    # network resizes its short side to min_size (up to max_size on its long side), as in training. Fixed at
+    # 480 x 640, every frame was first resized to that, stretching any other aspect.
     torch.onnx.export(model, ([x],), str(tmp), dynamo=False, opset_version=17, input_names=["image"],
-                      output_names=list(OUTPUT_NAMES), do_constant_folding=True)
+                      output_names=list(OUTPUT_NAMES), do_constant_folding=True,
+                      dynamic_axes={"image": {1: "height", 2: "width"}} if s.dynamic_input else None)
     tmp.replace(out)
     return out
 
