@@ -47,3 +47,8 @@ def test_reexport_bakes_the_new_settings_into_the_model(tmp_path):
     assert json.loads((tmp_path / "m.json").read_text())["settings"]["rpn_post_nms_test"] == 20
     model = onnx.load(str(tmp_path / "m.onnx"))
     assert [i.name for i in model.graph.input] == ["image"]
+    dims = model.graph.input[0].type.tensor_type.shape.dim
+    assert dims[0].dim_value == 3 and not dims[1].dim_value and not dims[2].dim_value  # height, width free
+    reexport(tmp_path / "w.pt", tmp_path / "f.onnx", dynamic_input=False)
+    fixed = onnx.load(str(tmp_path / "f.onnx")).graph.input[0].type.tensor_type.shape.dim
+    assert [d.dim_value for d in fixed] == [3, 480, 640]
