@@ -117,10 +117,12 @@ def kill_node(module: str) -> tuple[int, list[int]]:
 
 def launch_and_kill(args: list[str], kills: list[tuple[Callable[[str], bool], tuple[str, ...]]],
                     env: dict[str, str] | None = None, timeout_s: float = 1500,
-                    orphans: list[int] | None = None) -> tuple[int, str, list[str]]:
+                    orphans: list[int] | None = None, killed_at: dict[str, float] | None = None
+                    ) -> tuple[int, str, list[str]]:
     """Run `orchard-map launch ARGS` as a child, reading its output line by line; at the first line for which
     a kill's predicate holds, SIGKILL the nodes it names (each kill once, in order). Returns the exit code,
-    the whole output and the nodes killed; `orphans` gets the processes the killed nodes had started."""
+    the whole output and the nodes killed; `orphans` gets the processes the killed nodes had started,
+    `killed_at` the system time (s) of each kill."""
     proc = subprocess.Popen([sys.executable, "-m", "orchard_mapping.cli.main", "launch", *args],
                             stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True,
                             env=None if env is None else {**os.environ, **env})
@@ -133,6 +135,8 @@ def launch_and_kill(args: list[str], kills: list[tuple[Callable[[str], bool], tu
                 for module in todo.pop(0)[1]:
                     _, kids = kill_node(module)
                     killed.append(module)
+                    if killed_at is not None:
+                        killed_at[module] = time.time()
                     if orphans is not None:
                         orphans.extend(kids)
                     lines.append(f"[test] killed {module}\n")
