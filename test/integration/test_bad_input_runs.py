@@ -245,8 +245,11 @@ def test_ctrl_c_exits_130_and_leaves_the_folder_as_it_was(when, one_tree_result,
     # KeyboardInterrupt that rosbags' exec of generated code let through was handled), in a process group of
     # its own signalled whole: what Ctrl-C in a terminal does (the worker process included).
     command = Path(sys.executable).parent / "orchard-map"
+    # SIGINT back to its default in the child: a suite started in the background (nohup, `cmd &` in a script)
+    # hands its children SIGINT ignored, and Python then never turns it into KeyboardInterrupt
     proc = subprocess.Popen([str(command), "run", str(BAGS / "front"), str(BAGS / "back"), "--out", str(out)],
-                            stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True, start_new_session=True)
+                            stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True, start_new_session=True,
+                            preexec_fn=lambda: signal.signal(signal.SIGINT, signal.SIG_DFL))
     try:
         me = psutil.Process(proc.pid)
         deadline = time.monotonic() + 120
