@@ -36,6 +36,8 @@ os.environ["ROS_DOMAIN_ID"] = str(random.SystemRandom().randint(1, 101))
 import cv2  # noqa: E402
 import pytest  # noqa: E402
 
+from orchard_mapping.pipeline.sides import process_alive  # noqa: E402
+
 CV_SWITCH = os.environ.get("ORCHARD_TEST_CV", "")
 SEED_OFFSET = int(os.environ.get("ORCHARD_TEST_SEED_OFFSET", "0") or 0)
 if CV_SWITCH not in ("", "noopt", "threads1"):
@@ -77,7 +79,7 @@ def _prune_ended_sessions(tmp_path_factory) -> None:
             pid = int((old / ".lock").read_text())
         except (OSError, ValueError):
             pid = None  # no lock: the session ended (or never took one)
-        if pid is not None and _alive(pid):
+        if pid is not None and process_alive(pid):
             continue
         shutil.rmtree(old, ignore_errors=True)
 
@@ -89,16 +91,6 @@ def _user() -> str:
         return getpass.getuser()
     except (KeyError, OSError):
         return "unknown"
-
-
-def _alive(pid: int) -> bool:
-    try:
-        os.kill(pid, 0)
-    except ProcessLookupError:
-        return False
-    except PermissionError:
-        return True
-    return True
 
 
 @pytest.fixture(scope="session")

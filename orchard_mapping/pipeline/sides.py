@@ -113,7 +113,8 @@ class BagKeyframeImages:
 SPOOL_PREFIX = "orchard-keyframes-"
 
 
-def _alive(pid: int) -> bool:
+def process_alive(pid: int) -> bool:
+    """Whether a process of this id runs (one of another user counts as running)."""
     try:
         os.kill(pid, 0)
     except ProcessLookupError:
@@ -129,7 +130,7 @@ def reap_spools(root: str | Path) -> list[Path]:
     gone = []
     for d in Path(root).glob(f"{SPOOL_PREFIX}*-*"):
         pid = d.name[len(SPOOL_PREFIX):].split("-", 1)[0]
-        if d.is_dir() and not d.is_symlink() and pid.isdigit() and not _alive(int(pid)):
+        if d.is_dir() and not d.is_symlink() and pid.isdigit() and not process_alive(int(pid)):
             shutil.rmtree(d, ignore_errors=True)
             gone.append(d)
     return gone

@@ -291,25 +291,23 @@ def build_scene(sc: Scenario, seed: int) -> Scene:
     if blk.rows > 1:
         hx = np.arange(x_lo - apron, x_hi + apron, 0.15)
     hz = np.arange(0.0, st.hedge_height_m, 0.15)
-    for hy in (-st.hedge_distance_m, row_y[-1] + st.hedge_distance_m):
-        HX, HZ = np.meshgrid(hx, hz)
-        HY = hy + rng.normal(0, 0.05, HX.shape) * (HZ > 0.3)
-        HZ = HZ + terrain.height(HX, HY)
-        verts = np.stack([HX, HY, HZ], -1).reshape(-1, 3)
-        _, t = grid_mesh(hx, hz, np.zeros((len(hz), len(hx))))
+    def hedge_wall(along: np.ndarray, across: float, along_x: bool) -> None:
+        # a wall of foliage on the grid along x hz, `across` m away on the other axis, leaves jittered 5 cm
+        A, HZ = np.meshgrid(along, hz)
+        C = across + rng.normal(0, 0.05, A.shape) * (HZ > 0.3)
+        HX, HY = (A, C) if along_x else (C, A)
+        verts = np.stack([HX, HY, HZ + terrain.height(HX, HY)], -1).reshape(-1, 3)
+        _, t = grid_mesh(along, hz, np.zeros((len(hz), len(along))))
         alb = np.array(sc.appearance.hedge_rgb) * rng.uniform(*sc.appearance.hedge_gain, (len(t), 1))
         mb.add(verts, t, Cls.HEDGE, -1, alb)
+
+    for hy in (-st.hedge_distance_m, row_y[-1] + st.hedge_distance_m):
+        hedge_wall(hx, hy, along_x=True)
     if blk.headland_m > 0:
         # across both ends of the block, headland_m beyond the path's ends: what a turn in the headland looks at
         hy = np.arange(-st.hedge_distance_m, row_y[-1] + st.hedge_distance_m, 0.15)
         for hx0 in (x_lo - blk.headland_m, x_hi + blk.headland_m):
-            HY, HZ = np.meshgrid(hy, hz)
-            HX = hx0 + rng.normal(0, 0.05, HY.shape) * (HZ > 0.3)
-            HZ = HZ + terrain.height(HX, HY)
-            verts = np.stack([HX, HY, HZ], -1).reshape(-1, 3)
-            _, t = grid_mesh(hy, hz, np.zeros((len(hz), len(hy))))
-            alb = np.array(sc.appearance.hedge_rgb) * rng.uniform(*sc.appearance.hedge_gain, (len(t), 1))
-            mb.add(verts, t, Cls.HEDGE, -1, alb)
+            hedge_wall(hy, hx0, along_x=False)
 
     vertices = np.concatenate(mb.vertices)
     sway = np.concatenate(mb.sway)

@@ -182,12 +182,7 @@ def _loop_path(sc: Scenario, row_x: tuple[float, float], terrain: Terrain, rng: 
     # Look at the row: +y on the front side, towards the row end during the turn, -y on the back side.
     yaw = np.concatenate([np.full(len(s1), np.pi / 2), np.pi / 2 + arc, np.full(len(s3), -np.pi / 2)])
     sides = np.array(["front"] * (len(s1) + len(arc) // 2) + ["back"] * (len(arc) - len(arc) // 2 + len(s3)))
-    n = len(x)
-    t = np.arange(n) / rate
-    travelled = np.concatenate([[0.0], np.cumsum(np.hypot(np.diff(x), np.diff(y)))])
-    jit, ang = _hand_shake(p, t, travelled, rng)
-    pos = np.stack([x, y, terrain.height(x, y) + p.low_height_m], 1) + jit
-    T, length = _looking_poses(pos, yaw + ang[:, 0], ang[:, 1], np.radians(p.roll_deg) + ang[:, 2])
+    t, T, length = _level_walk_poses(p, x, y, yaw, rate, rng, terrain)
     return CameraPath(t0 + t, T, sides, length)
 
 
@@ -239,10 +234,17 @@ def block_path(sc: Scenario, rows: tuple[RowLine, ...], terrain: Terrain, rng: n
     x = np.concatenate(xs)
     y = np.concatenate(ys)
     yaw = np.concatenate(yaws)
-    n_all = len(x)
-    t = np.arange(n_all) / rate
+    t, T, length = _level_walk_poses(p, x, y, yaw, rate, rng, terrain)
+    return CameraPath(t0 + t, T, np.array(sides), length, np.array(row_no))
+
+
+def _level_walk_poses(p, x: np.ndarray, y: np.ndarray, yaw: np.ndarray, rate: float, rng: np.random.Generator,
+                      terrain) -> tuple[np.ndarray, np.ndarray, float]:
+    """A level camera along ground track (x, y) (N,) m looking at yaw (N,) rad, at rate Hz, with the hand's or
+    vehicle's shake: times (N,) s from the start, poses (N, 4, 4) world, path length m."""
+    t = np.arange(len(x)) / rate
     travelled = np.concatenate([[0.0], np.cumsum(np.hypot(np.diff(x), np.diff(y)))])
     jit, ang = _hand_shake(p, t, travelled, rng)
     pos = np.stack([x, y, terrain.height(x, y) + p.low_height_m], 1) + jit
     T, length = _looking_poses(pos, yaw + ang[:, 0], ang[:, 1], np.radians(p.roll_deg) + ang[:, 2])
-    return CameraPath(t0 + t, T, np.array(sides), length, np.array(row_no))
+    return t, T, length
