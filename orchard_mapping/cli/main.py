@@ -354,8 +354,6 @@ def train_detector(
             raise ValueError(f"--crop is a share of the training images, 0 to 1, got {crop}")
         if colour_jitter not in ("narrow", "wide"):
             raise ValueError(f"--colour-jitter is narrow or wide, got {colour_jitter!r}")
-        if not 1.0 <= max_aspect <= 4.0:
-            raise ValueError(f"--max-aspect is a long / short side ratio, 1 to 4, got {max_aspect}")
         if min_size < 64 or any(t < 64 for t in train_size):
             raise ValueError(f"--min-size and --train-size must be at least 64 px, got {min_size} and {train_size}")
         folders = _coco_folders(data, out.parent / ".coco_cache", every)
@@ -392,17 +390,14 @@ def export_detector(
         import torch  # noqa: F401
         import torchvision  # noqa: F401
 
-        from orchard_mapping.train.detector import long_side, reexport
+        from orchard_mapping.train.detector import reexport
     except ImportError as err:
         raise _fail(RuntimeError(f"export-detector needs torch and torchvision: pip install -r "
                                  f"requirements-train.lock ({err})")) from err
     overrides: dict[str, Any] = {}
-    if min_size is not None or max_aspect is not None:
-        if max_aspect is not None and not 1.0 <= max_aspect <= 4.0:
-            raise _fail(ValueError(f"--max-aspect is a long / short side ratio, 1 to 4, got {max_aspect}"))
-        short = min_size if min_size is not None else json.loads(
-            (record or weights.with_suffix(".json")).read_text())["settings"]["min_size"]
-        overrides.update(min_size=short, max_size=long_side(short, max_aspect or 4 / 3))
+    if min_size is not None:
+        overrides["min_size"] = min_size
+        max_aspect = 4 / 3 if max_aspect is None else max_aspect
     overrides["dynamic_input"] = dynamic_input
     if rpn_pre_nms is not None:
         overrides["rpn_pre_nms_test"] = rpn_pre_nms
@@ -411,7 +406,7 @@ def export_detector(
     try:
         if any(v < 1 for k, v in overrides.items() if k != "dynamic_input"):
             raise ValueError(f"export-detector settings must be positive, got {overrides}")
-        reexport(weights, out, record, **overrides)
+        reexport(weights, out, record, max_aspect=max_aspect, **overrides)
     except ValueError as err:
         raise _fail(err) from err
     console.print(f"wrote {out}")

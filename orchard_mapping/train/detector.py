@@ -86,6 +86,8 @@ def long_side(short_side: int, aspect: float = 4 / 3) -> int:
     """px: the network's largest long side for a short side of `short_side`: frames up to `aspect` (long /
     short side; 640 x 480: 4/3, 1280 x 720: 16/9) get their short side resized to `short_side`, wider ones
     less."""
+    if not 1.0 <= aspect <= 4.0:
+        raise ValueError(f"the widest frame aspect is a long / short side ratio, 1 to 4, got {aspect}")
     return math.ceil(short_side * aspect)
 
 
@@ -408,11 +410,12 @@ def export_onnx(model, out: Path, s: TrainSettings, size: tuple[int, int] = (480
     return out
 
 
-def reexport(weights: Path, out: Path, record: Path | None = None, **overrides: Any) -> dict[str, Any]:
+def reexport(weights: Path, out: Path, record: Path | None = None, max_aspect: float | None = None,
+             **overrides: Any) -> dict[str, Any]:
     """Export trained `weights` (.pt) to ONNX at `out` again, with inference settings changed (`overrides`:
-    TrainSettings fields such as min_size or rpn_pre_nms_test); the network is rebuilt from the training
-    record (`record`, default: the .json beside the weights). Writes the record beside `out` with the
-    settings the export used; returns it."""
+    TrainSettings fields such as min_size or rpn_pre_nms_test; `max_aspect`: max_size from the export's
+    min_size, `long_side`); the network is rebuilt from the training record (`record`, default: the .json
+    beside the weights). Writes the record beside `out` with the settings the export used; returns it."""
     record = weights.with_suffix(".json") if record is None else record
     try:
         card = json.loads(record.read_text())
@@ -424,6 +427,8 @@ def reexport(weights: Path, out: Path, record: Path | None = None, **overrides: 
     if unknown:
         raise ValueError(f"training record {record} / overrides: unknown settings {unknown}")
     merged = {k: tuple(v) if isinstance(v, list) else v for k, v in {**saved, **overrides}.items()}
+    if max_aspect is not None:
+        merged["max_size"] = long_side(merged["min_size"], max_aspect)
     s = TrainSettings(**merged)
     model = build_model(s)
     load_checkpoint(model, weights)

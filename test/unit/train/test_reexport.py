@@ -14,6 +14,16 @@ def test_a_missing_record_is_named(tmp_path):
         reexport(tmp_path / "w.pt", tmp_path / "m.onnx", tmp_path / "nothing.json")
 
 
+def test_a_widest_aspect_takes_the_records_short_side_and_is_checked(tmp_path):
+    # --max-aspect without --min-size: the record is read once, by reexport, and a missing one is named there
+    with pytest.raises(ValueError, match=r"training record .*w\.json"):
+        reexport(tmp_path / "w.pt", tmp_path / "m.onnx", max_aspect=16 / 9)
+    (tmp_path / "w.json").write_text(json.dumps({"settings": {"min_size": 416}}))
+    with pytest.raises(ValueError, match="aspect .* 1 to 4, got 5.0"):
+        reexport(tmp_path / "w.pt", tmp_path / "m.onnx", max_aspect=5.0)
+    assert not (tmp_path / "m.onnx").exists()
+
+
 def test_a_record_without_settings_is_refused(tmp_path):
     rec = tmp_path / "w.json"
     rec.write_text(json.dumps({"images": 3}))
