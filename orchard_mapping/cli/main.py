@@ -356,10 +356,11 @@ def train_detector(
             raise ValueError(f"--colour-jitter is narrow or wide, got {colour_jitter!r}")
         if min_size < 64 or any(t < 64 for t in train_size):
             raise ValueError(f"--min-size and --train-size must be at least 64 px, got {min_size} and {train_size}")
+        max_size = long_side(min_size, max_aspect)  # checks the aspect before any data is read
         folders = _coco_folders(data, out.parent / ".coco_cache", every)
         settings = TrainSettings(iterations=iterations, seed=seed, threads=threads,
                                  lr_scale=lr_scale if init is not None else 1.0, min_size=min_size,
-                                 max_size=long_side(min_size, max_aspect), train_sizes=tuple(train_size),
+                                 max_size=max_size, train_sizes=tuple(train_size),
                                  solid_outlines=not whole_masks, crop_prob=crop,
                                  fpn_strides=tuple(fpn_stride), colour_jitter=colour_jitter)
         card = train(folders, out, settings,
