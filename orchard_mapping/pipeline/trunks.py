@@ -7,6 +7,7 @@ from __future__ import annotations
 
 import contextlib
 import logging
+import os
 import signal
 import time
 from collections.abc import Callable, Iterator
@@ -299,19 +300,35 @@ class TrunkWorker:
 
 @contextlib.contextmanager
 def _sigint_held() -> Iterator[None]:
-    """SIGINT blocked in this thread while it starts the worker process, which keeps the blocked mask for its
-    life (it is inherited across fork and exec): Ctrl-C reaches every process of the terminal's group, and the
-    worker, hit in its imports or in a job, printed a traceback of its own. The main process stops the run and
-    shuts the worker down. Blocked, not ignored: a Ctrl-C meanwhile is delivered here once the mask is restored
-    (or at once to another thread of the process), not lost."""
+    """SIGINT held off while this thread starts the worker process, and blocked in the worker for its life.
+
+    Ctrl-C reaches every process of the terminal's group, and the worker, hit in its imports or in a job, printed
+    a traceback of its own; the main process stops the run and shuts the worker down. The mask is inherited
+    across fork and exec. Blocking it in this thread is not enough for the main process itself: the kernel then
+    hands the signal to another thread (onnxruntime's), and Python raises KeyboardInterrupt here all the same,
+    possibly between the worker's exec and the write of its start-up data, whereupon the worker died with
+    "EOFError: Ran out of input" and its traceback (seen once in CI). So in the main thread a Ctrl-C meanwhile
+    is only noted, and raised once the worker is started: held, not lost."""
     if not hasattr(signal, "pthread_sigmask"):  # not POSIX: no process group gets the signal either
         yield
         return
+    import threading
+
+    noted: list[int] = []
+    previous = None
+    if threading.current_thread() is threading.main_thread():
+        previous = signal.signal(signal.SIGINT, lambda signum, frame: noted.append(signum))
     before = signal.pthread_sigmask(signal.SIG_BLOCK, {signal.SIGINT})
     try:
         yield
     finally:
         signal.pthread_sigmask(signal.SIG_SETMASK, before)
+        if previous is not None:
+            signal.signal(signal.SIGINT, previous)
+            if noted and callable(previous):  # Python's own handler raises KeyboardInterrupt here
+                previous(signal.SIGINT, None)
+            elif noted and previous == signal.SIG_DFL:
+                os.kill(os.getpid(), signal.SIGINT)
 
 
 def _pass_on(done: Future, out: Future) -> None:

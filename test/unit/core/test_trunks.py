@@ -175,3 +175,32 @@ def test_a_sides_trunks_modelled_in_the_worker_process_are_the_ones_modelled_her
     assert b.flags == a.flags and "detector_unavailable_nearby" in a.flags
     assert here.warnings == there.warnings and "did not answer for 1 keyframes" in here.warnings[0]
     assert set(there.seconds) == {"trunks_front"}
+
+
+def test_a_ctrl_c_while_the_trunk_worker_starts_is_held_until_it_has_started():
+    """A Ctrl-C as the worker process is launched was raised between its exec and the write of its start-up
+    data (the kernel hands the signal to another, unblocked thread and Python raises in the main thread all the
+    same): the worker died with its own traceback. It is held until the launch is over, then raised."""
+    import os
+    import signal
+    import threading
+    import time
+
+    from orchard_mapping.pipeline.trunks import _sigint_held
+
+    stop = threading.Event()
+    other = threading.Thread(target=stop.wait)  # started before the mask: SIGINT is delivered to it
+    other.start()
+    reached_end = False
+    try:
+        with pytest.raises(KeyboardInterrupt):
+            with _sigint_held():
+                os.kill(os.getpid(), signal.SIGINT)
+                for _ in range(200):  # bytecode boundaries where Python would raise a pending Ctrl-C
+                    time.sleep(0.001)
+                reached_end = True
+    finally:
+        stop.set()
+        other.join()
+    assert reached_end
+    assert signal.getsignal(signal.SIGINT) is signal.default_int_handler
