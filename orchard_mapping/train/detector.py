@@ -80,6 +80,11 @@ class TrainSettings:
     # Export with a free input height and width (export_onnx); False: fixed at 480 x 640 (the models up to
     # the shipped one's step 8).
     dynamic_input: bool = True
+    # "mobilenet_v3_large": torchvision's, from random weights (the shipped model's steps 1-8).
+    # "efficientnet_lite0": EfficientNet-Lite0 with ImageNet weights (train/backbones.py), its batch norms
+    # frozen (a batch of 2 frames is no estimate of their statistics) and its stem and stride-4 blocks fixed:
+    # what it learnt from real photographs is what the simulator's frames cannot teach.
+    backbone: str = "mobilenet_v3_large"
 
 
 def long_side(short_side: int, aspect: float = 4 / 3) -> int:
@@ -103,10 +108,23 @@ def build_model(s: TrainSettings):
     from torchvision.ops import MultiScaleRoIAlign
     from torchvision.ops.feature_pyramid_network import LastLevelMaxPool
 
-    features = mobilenet_v3_large(weights=None).features
-    returned = fpn_stage_blocks(features, s.fpn_strides)
+    normalise: dict[str, Any] = {}  # torchvision's default: ImageNet's per-channel mean and sd
+    if s.backbone == "mobilenet_v3_large":
+        features = mobilenet_v3_large(weights=None).features
+        returned = fpn_stage_blocks(features, s.fpn_strides)
+        in_channels = [features[i].out_channels for i in returned]
+    elif s.backbone == "efficientnet_lite0":
+        from orchard_mapping.train.backbones import LITE0_MEAN, LITE0_STD, efficientnet_lite0
+
+        features, channels, strides = efficientnet_lite0(pretrained=True)
+        returned = stage_blocks_at(strides, s.fpn_strides)
+        in_channels = [channels[i] for i in returned]
+        features = nn.Sequential(*features[:returned[-1] + 1])
+        _freeze(features, fixed_blocks=stage_blocks_at(strides, (4,))[0] + 1)
+        normalise = {"image_mean": list(LITE0_MEAN), "image_std": list(LITE0_STD)}
+    else:
+        raise ValueError(f"backbone must be mobilenet_v3_large or efficientnet_lite0, got {s.backbone!r}")
     return_layers = {str(i): str(k) for k, i in enumerate(returned)}
-    in_channels = [features[i].out_channels for i in returned]
     backbone = BackboneWithFPN(nn.Sequential(*features), return_layers, in_channels, s.fpn_channels,
                                extra_blocks=LastLevelMaxPool())
     levels = [*(str(k) for k in range(len(returned))), "pool"]  # anchors and both RoI poolers see every level
@@ -125,19 +143,45 @@ def build_model(s: TrainSettings):
         box_detections_per_img=20, rpn_pre_nms_top_n_test=s.rpn_pre_nms_test,
         rpn_post_nms_top_n_test=s.rpn_post_nms_test,
         rpn_post_nms_top_n_train=s.rpn_post_nms_train, box_batch_size_per_image=s.box_batch_per_image,
+        **normalise,
     )
     torch.manual_seed(s.seed)
     return model
 
 
+def _freeze(features, fixed_blocks: int) -> None:
+    """A pretrained backbone's batch norms frozen to its statistics (torchvision's FrozenBatchNorm2d, in
+    place), and its first `fixed_blocks` blocks not trained at all (their features are generic edges and
+    colours; fine-tuned on the simulator's frames they would learn its textures)."""
+    from torch import nn
+    from torchvision.ops import FrozenBatchNorm2d
+
+    for parent in list(features.modules()):
+        for name, child in list(parent.named_children()):
+            if isinstance(child, nn.BatchNorm2d):
+                frozen = FrozenBatchNorm2d(child.num_features, eps=child.eps)
+                for key in ("weight", "bias", "running_mean", "running_var"):
+                    getattr(frozen, key).copy_(getattr(child, key).detach())
+                setattr(parent, name, frozen)
+    for block in features[:fixed_blocks]:
+        for p in block.parameters():
+            p.requires_grad_(False)
+
+
 def fpn_stage_blocks(features, strides: tuple[int, ...]) -> list[int]:
     """Index of the last block of MobileNetV3's `features` at each output stride in `strides` (px). The stem
     halves the image; each block marked `_is_cn` (torchvision's mark for a strided block) halves it again."""
-    stride, last_at = 2, {}
+    stride, block_strides = 2, []
     for i, block in enumerate(features):
         if i > 0 and getattr(block, "_is_cn", False):
             stride *= 2
-        last_at[stride] = i
+        block_strides.append(stride)
+    return stage_blocks_at(block_strides, strides)
+
+
+def stage_blocks_at(block_strides: list[int], strides: tuple[int, ...]) -> list[int]:
+    """Index of the last block at each output stride in `strides` (px), given each block's output stride."""
+    last_at = {st: i for i, st in enumerate(block_strides)}
     wrong = [st for st in strides if st not in last_at]
     if not strides or wrong or list(strides) != sorted(set(strides)):
         raise ValueError(f"fpn_strides must be increasing strides among {sorted(last_at)}, got {list(strides)}")
