@@ -19,6 +19,7 @@ outputs boxes, labels, scores, masks).
 
 from __future__ import annotations
 
+import functools
 import json
 import math
 import random
@@ -125,8 +126,14 @@ def build_model(s: TrainSettings):
     else:
         raise ValueError(f"backbone must be mobilenet_v3_large or efficientnet_lite0, got {s.backbone!r}")
     return_layers = {str(i): str(k) for k, i in enumerate(returned)}
+    fpn_norm = {}
+    if s.backbone == "efficientnet_lite0":
+        # The pretrained stages' outputs (linear bottlenecks, statistics frozen) reach a scale the FPN's plain
+        # convolutions passed on: its stride-8 level had an sd of 37 after 300 iterations, and the box head's
+        # ReLUs had all died (every RoI the same class scores). Group norm in the FPN holds its scale.
+        fpn_norm = {"norm_layer": functools.partial(nn.GroupNorm, 32)}
     backbone = BackboneWithFPN(nn.Sequential(*features), return_layers, in_channels, s.fpn_channels,
-                               extra_blocks=LastLevelMaxPool())
+                               extra_blocks=LastLevelMaxPool(), **fpn_norm)
     levels = [*(str(k) for k in range(len(returned))), "pool"]  # anchors and both RoI poolers see every level
     anchors = AnchorGenerator(sizes=((32, 64, 128, 256, 384),) * len(levels),
                               aspect_ratios=((1.0, 2.0, 4.0, 6.0),) * len(levels))  # h/w: trunks are tall
@@ -324,8 +331,8 @@ def match_fpn_levels(state: dict, own: dict) -> tuple[dict, list[str]]:
     checkpoint with its FPN keys renamed, and the model's FPN tensors left fresh. Everything outside the FPN
     must still match exactly (the caller checks)."""
     def levels(d: dict) -> dict[int, int]:  # FPN level -> input channels of its 1x1 inner block
-        return {int(k.split(".")[3]): int(v.shape[1]) for k, v in d.items()
-                if k.startswith(_FPN + "inner_blocks.") and k.endswith(".weight")}
+        return {int(k.split(".")[3]): int(v.shape[1]) for k, v in d.items()  # the convolution, not a norm's
+                if k.startswith(_FPN + "inner_blocks.") and k.endswith(".weight") and len(v.shape) == 4}
 
     old, new = levels(state), levels(own)
     if old == new:

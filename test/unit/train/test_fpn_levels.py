@@ -63,3 +63,23 @@ def test_levels_are_matched_by_the_stage_they_read_and_new_ones_stay_fresh():
     # outside the FPN nothing is renamed or dropped
     np.testing.assert_array_equal(out["roi_heads.box_head.fc6.weight"], state["roi_heads.box_head.fc6.weight"])
     assert not any(k.startswith("backbone.fpn.") and k not in own for k in out)
+
+
+def test_an_fpn_with_group_norm_is_matched_by_its_convolutions():
+    # the efficientnet_lite0 backbone's FPN has a group norm after each convolution: its 1-D weights
+    # ('inner_blocks.0.1.weight') are no level's input channels (they made the matching fail with an IndexError)
+    def normed(levels_in, fill):
+        d = _fpn(levels_in, fill)
+        for lvl in range(len(levels_in)):
+            for kind in ("inner_blocks", "layer_blocks"):
+                d[f"backbone.fpn.{kind}.{lvl}.1.weight"] = np.full((4,), fill + lvl)
+                d[f"backbone.fpn.{kind}.{lvl}.1.bias"] = np.full((4,), fill + lvl)
+        return d
+
+    state = normed([40, 320], 1.0)
+    out, fresh = match_fpn_levels(state, normed([24, 40, 320], 0.0))
+    np.testing.assert_array_equal(out["backbone.fpn.inner_blocks.2.1.weight"],
+                                  state["backbone.fpn.inner_blocks.1.1.weight"])
+    np.testing.assert_array_equal(out["backbone.fpn.inner_blocks.1.0.weight"],
+                                  state["backbone.fpn.inner_blocks.0.0.weight"])
+    assert fresh and {k.split(".")[3] for k in fresh} == {"0"}
