@@ -188,6 +188,9 @@ def test_a_ctrl_c_while_the_trunk_worker_starts_is_held_until_it_has_started():
 
     from orchard_mapping.pipeline.trunks import _sigint_held
 
+    # Python's own handler, as an interactive run has it (a suite started in the background inherits SIGINT
+    # ignored, and nothing would be raised at all)
+    before = signal.signal(signal.SIGINT, signal.default_int_handler)
     stop = threading.Event()
     other = threading.Thread(target=stop.wait)  # started before the mask: SIGINT is delivered to it
     other.start()
@@ -202,5 +205,7 @@ def test_a_ctrl_c_while_the_trunk_worker_starts_is_held_until_it_has_started():
     finally:
         stop.set()
         other.join()
+        handler_after = signal.getsignal(signal.SIGINT)
+        signal.signal(signal.SIGINT, before)
     assert reached_end
-    assert signal.getsignal(signal.SIGINT) is signal.default_int_handler
+    assert handler_after is signal.default_int_handler
