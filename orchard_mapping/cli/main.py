@@ -346,7 +346,7 @@ def train_detector(
         import torch  # noqa: F401
         import torchvision  # noqa: F401
 
-        from orchard_mapping.train.detector import TrainSettings, long_side, train
+        from orchard_mapping.train.detector import BACKBONES, TrainSettings, long_side, train
     except ImportError as err:
         raise _fail(RuntimeError(f"train-detector needs torch and torchvision: pip install -r "
                                  f"requirements-train.lock ({err})")) from err
@@ -357,8 +357,8 @@ def train_detector(
             raise ValueError(f"--crop is a share of the training images, 0 to 1, got {crop}")
         if colour_jitter not in ("narrow", "wide"):
             raise ValueError(f"--colour-jitter is narrow or wide, got {colour_jitter!r}")
-        if backbone not in ("mobilenet_v3_large", "efficientnet_lite0"):
-            raise ValueError(f"--backbone is mobilenet_v3_large or efficientnet_lite0, got {backbone!r}")
+        if backbone not in BACKBONES:  # before any training data is read (build_model checks it too)
+            raise ValueError(f"--backbone is one of {', '.join(BACKBONES)}, got {backbone!r}")
         if min_size < 64 or any(t < 64 for t in train_size):
             raise ValueError(f"--min-size and --train-size must be at least 64 px, got {min_size} and {train_size}")
         max_size = long_side(min_size, max_aspect)  # checks the aspect before any data is read

@@ -90,6 +90,9 @@ class TrainSettings:
     backbone: str = "mobilenet_v3_large"
 
 
+BACKBONES = ("mobilenet_v3_large", "efficientnet_lite0")  # TrainSettings.backbone, build_model
+
+
 def long_side(short_side: int, aspect: float = 4 / 3) -> int:
     """px: the network's largest long side for a short side of `short_side`: frames up to `aspect` (long /
     short side; 640 x 480: 4/3, 1280 x 720: 16/9) get their short side resized to `short_side`, wider ones
@@ -112,6 +115,7 @@ def build_model(s: TrainSettings):
     from torchvision.ops.feature_pyramid_network import LastLevelMaxPool
 
     normalise: dict[str, Any] = {}  # torchvision's default: ImageNet's per-channel mean and sd
+    fpn_norm: dict[str, Any] = {}  # none
     if s.backbone == "mobilenet_v3_large":
         features = mobilenet_v3_large(weights=None).features
         returned = fpn_stage_blocks(features, s.fpn_strides)
@@ -125,15 +129,13 @@ def build_model(s: TrainSettings):
         features = nn.Sequential(*features[:returned[-1] + 1])
         _freeze(features, fixed_blocks=stage_blocks_at(strides, (4,))[0] + 1)
         normalise = {"image_mean": list(LITE0_MEAN), "image_std": list(LITE0_STD)}
-    else:
-        raise ValueError(f"backbone must be mobilenet_v3_large or efficientnet_lite0, got {s.backbone!r}")
-    return_layers = {str(i): str(k) for k, i in enumerate(returned)}
-    fpn_norm = {}
-    if s.backbone == "efficientnet_lite0":
         # The pretrained stages' outputs (linear bottlenecks, statistics frozen) reach a scale the FPN's plain
         # convolutions passed on: its stride-8 level had an sd of 37 after 300 iterations, and the box head's
         # ReLUs had all died (every RoI the same class scores). Group norm in the FPN holds its scale.
         fpn_norm = {"norm_layer": functools.partial(nn.GroupNorm, 32)}
+    else:
+        raise ValueError(f"backbone must be one of {', '.join(BACKBONES)}, got {s.backbone!r}")
+    return_layers = {str(i): str(k) for k, i in enumerate(returned)}
     backbone = BackboneWithFPN(nn.Sequential(*features), return_layers, in_channels, s.fpn_channels,
                                extra_blocks=LastLevelMaxPool(), **fpn_norm)
     levels = [*(str(k) for k in range(len(returned))), "pool"]  # anchors and both RoI poolers see every level
