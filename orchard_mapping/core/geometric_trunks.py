@@ -16,11 +16,11 @@ to the first branches. This module finds such columns in the fused cloud of one 
    (coverage) that faces the cameras (the centre lies beyond the arc), and its axis is vertical (the circles
    of the band's lower and upper halves agree).
 4. Above the band: a trunk tapers and branches into the canopy; a trellis post goes on straight and bare
-   to well above the cameras. Four cues read there each vote post, tree or neither: how much of the column's
-   points stay on the band's cylinder, the radius of its circle there against the band's, that circle's
-   residual, and how many points stand 6-30 cm off its surface (branches, leaves). A column with post votes, no
-   tree vote and its shell filled to POST_MIN_TOP_M is `post_like`; one whose shell ends low with something
-   seen above it, or with tree votes outweighing, is `tree_like`; the rest are left to the detector.
+   to well above the cameras. A column whose shell of the same radius stays filled to POST_MIN_TOP_M and
+   that is still one circle of about its radius at UPPER_SLICE_M is flagged `post_like`; one whose shell ends
+   below that height with something seen above it, or whose points there fit no circle of its radius (a leader
+   with branches and leaves), is `tree_like`. A column that is neither (a straight column of its radius, but too noisy to call bare) is left
+   to the detector.
 
 The pipeline (`orchard_mapping.pipeline`) turns each candidate the detector missed into trunk views: in the
 keyframes that see it, the depth pixels on its cylinder form a mask (`cylinder_mask`), and the trunk is then
@@ -62,33 +62,17 @@ MAX_RMS_FRACTION = 0.3  # circle residual RMS, of the radius (and at least MIN_R
 MIN_RMS_M = 0.009
 MAX_TILT_DEG = 20.0  # deg, axis vs up
 POST_MIN_TOP_M = 1.4  # m: a bare, straight column of one radius this high is a post
-UPPER_SLICE_M = (0.9, 1.3)  # m above the ground: where the column's circle is fitted again
-CLUTTER_SLICE_M = (1.0, 1.5)  # m above the ground: where branches and leaves around the column are counted
-# Above the band four cues each vote post, tree or neither (a cue between its two limits abstains). Limits from
-# the simulator's 10-tree rows (standard 21, 31, 51; wind 32, 52; slope_weeds 33; dense 41, 54: 98 trunk and 44
-# post columns, fused clouds):
-# - shell: share of the upper slice's points on the band's cylinder (within 1 cm or a quarter of the radius).
-#   Trunks 0.03-0.45 (90 % below 0.32): the leader is thinner and leaves stand off it; posts 0.33-1.0.
-SHELL_POST, SHELL_TREE = 0.40, 0.30
-# - radius: the upper slice's circle over the band's. Trunks 0.88-1.85 (10 % below 1.40): a thin leader and the
-#   leaves within 4 cm of the band's radius fit a wider circle; posts 0.79-1.48 (median 1.07). A circle far
-#   narrower than the band's is a leader too. The tree limit is below the trunks' range so that a bare straight
-#   stem with one branch near it (1.34 on a synthetic pine-like stem, whose other cues read "post") stays with the
-#   detector; 2 of the 44 posts vote tree by it. A circle RADIUS_TREE_SURE times the band's or more (no post reached
-#   1.5; 55 % of the trunks did) is two tree votes: a column that widens so is branching, whatever the other cues
-#   read (a sparse crown leaves little clutter: 4 of 17 trunks of the second renderer's pine rows were otherwise
-#   left to the detector).
-RADIUS_POST, RADIUS_TREE_WIDE, RADIUS_TREE_NARROW, RADIUS_TREE_SURE = (0.75, 1.15), 1.25, 0.6, 1.6
-# - clutter: points 6-30 cm off the column's surface per point on it, in CLUTTER_SLICE_M. Trunks 10.9-16700
-#   (5 % below 22: branches and leaves); posts 0.5-16.5 (90 % below 11.9; the neighbours' crowns and the wire).
-CLUTTER_POST, CLUTTER_TREE = 8.0, 20.0
-# - residual RMS of the upper circle. Trunks 8.4-21.6 mm (5 % below 11.0); posts 1.9-14.0 mm.
-RMS_POST_M, RMS_TREE_M = 0.008, 0.015
-# Post-like: at least two post votes, no tree vote, and the shell to POST_MIN_TOP_M. Tree-like: two tree votes,
-# or one with no post vote. On those rows 33 of 44 posts came out post-like and 2 tree-like (posts inside dense
-# crowns); 96 of 98 trunks tree-like, none post-like. The RMS cue alone (within 10 mm: 31 posts post-like, 7
-# tree-like there) leaves posts of a rougher depth to the detector: on rows of real scanned pines from a second
-# renderer (never tuned on) no post passed it, their upper circles 10.9-13.8 mm RMS.
+UPPER_SLICE_M = (0.9, 1.3)  # m above the ground: where a post-like column's circle is fitted again
+# A post's circle there: the band's radius within 25 % (weeds at a post's foot widen its band circle: 48 vs 60 mm
+# on slope_weeds) and a residual RMS within 10 mm (or 20 % of the radius). A trunk's leader, branches and leaves
+# there fit no circle: 6-tree standard and slope_weeds rows (seeds 3, 4), every trunk 13.7-21.5 mm RMS but one
+# (8.7 mm, its circle 1.8 times the band's); every post 2.0-9.2 mm.
+POST_RADIUS_CHANGE = 0.25
+# Tree-like there: no circle of the band's radius (the two trunks of those rows whose circle there kept their
+# radius within 25 % spread 21.4 and 21.5 mm); between the post and tree limits the detector decides.
+TREE_RMS_FACTOR = 2.0
+POST_MAX_RMS_M = 0.010
+POST_MAX_RMS_FRACTION = 0.2
 MASK_TOP_M = 0.9  # m above the ground: a column's mask ends here (the clear trunk and a little of the leader)
 MASK_GROW_PX = 1  # px each way: the depth pixels on a column end 1-2 px short of its silhouette (no depth at the edge);
 # std6 row, geometry alone: diameter bias -1.78 mm as they are, +0.60 grown by 1 px, +2.5 by 2 (the edge snap does the rest)
@@ -300,21 +284,10 @@ def _column_top(a: np.ndarray, b: np.ndarray, hg: np.ndarray, xc: float, yc: flo
     if lo < BAND_HI_M or upper.sum() < 30:
         return float(top), False, ended_low
     _, _, r_hi, rms_hi = _fit_circle(a[upper] - ax[0] * s[upper], b[upper] - ax[1] * s[upper])
-    shell_share = float(np.mean(np.abs(d[upper] - r) < max(0.01, 0.25 * r)))
-    ratio = r_hi / r
-    z = (hg >= CLUTTER_SLICE_M[0]) & (hg < CLUTTER_SLICE_M[1])
-    on = int(np.sum(z & (np.abs(d - r) < max(0.012, 0.3 * r))))
-    off = int(np.sum(z & (d > r + 0.06) & (d < r + 0.30)))
-    post_votes = int(shell_share >= SHELL_POST) + int(RADIUS_POST[0] <= ratio <= RADIUS_POST[1]) + int(
-        rms_hi <= RMS_POST_M)
-    tree_votes = int(shell_share <= SHELL_TREE) + int(ratio >= RADIUS_TREE_WIDE or ratio <= RADIUS_TREE_NARROW) + int(
-        rms_hi >= RMS_TREE_M) + 2 * int(ratio >= RADIUS_TREE_SURE)
-    if on + off >= 30:  # seen there (a side whose view ends lower says nothing of it)
-        clutter = off / max(on, 1)
-        post_votes += int(clutter <= CLUTTER_POST)
-        tree_votes += int(clutter >= CLUTTER_TREE)
-    post_like = top >= POST_MIN_TOP_M and post_votes >= 2 and tree_votes == 0
-    tree_like = ended_low or tree_votes >= 2 or (tree_votes == 1 and post_votes == 0)
+    limit = max(POST_MAX_RMS_M, POST_MAX_RMS_FRACTION * r)
+    same_radius = abs(r_hi - r) <= POST_RADIUS_CHANGE * r
+    post_like = top >= POST_MIN_TOP_M and same_radius and rms_hi <= limit
+    tree_like = ended_low or not same_radius or rms_hi > TREE_RMS_FACTOR * limit
     return float(top), bool(post_like), bool(tree_like)
 
 

@@ -142,49 +142,6 @@ def test_a_detection_on_a_tapering_column_is_on_a_tree_and_one_on_the_post_is_no
     assert not on_tree_column(trees[1][0] + [0.0, -trees[1][1], 0.4], cands, post_like=True)
 
 
-def _rough_row(seed: int):
-    """A side whose depth is rough: two 8.5 cm posts to 2.4 m with a 1 cm sd shell and flying pixels at their
-    silhouettes (upper circles 10.9-12 mm RMS, as the posts of a second renderer's rows read), a wire across them
-    at 1 m, and two thin straight stems to 2.3 m with a few bare branches (a young pine: nearly a pole)."""
-    rng = np.random.default_rng(seed)
-    gx, gy = np.meshgrid(np.arange(-1.0, 5.5, 0.012), np.arange(-1.8, 0.6, 0.012))
-    gx, gy = gx.ravel(), gy.ravel()
-    pts = [np.stack([gx, gy, _ground_z(gx, gy) + rng.normal(0, 0.003, gx.size)], 1)]
-    objects = []
-    for kind, x in (("stem", 0.5), ("post", 1.6), ("stem", 2.7), ("post", 3.8)):
-        y = rng.normal(0, 0.02)
-        c = np.array([x, y, float(_ground_z(np.array(x), np.array(y)))])
-        objects.append((kind, c))
-        if kind == "post":
-            p = _shell(rng, c, 0.0425, -0.02, 2.4, 8000)
-            p[:, :2] += rng.normal(0, 0.010, (len(p), 2))
-            flying = rng.random(len(p)) < 0.15  # pushed along the view (-y) by up to 4 cm
-            p[flying, 1] -= rng.uniform(0, 0.04, int(flying.sum()))
-            pts.append(p)
-            continue
-        pts.append(_shell(rng, c, rng.uniform(0.015, 0.02), -0.02, 2.3, 5000, taper=-0.004))
-        for _ in range(8):  # bare side branches from 0.8 m, 0.2-0.6 m long
-            z, ang, length = rng.uniform(0.8, 2.2), rng.uniform(0, 2 * np.pi), rng.uniform(0.2, 0.6)
-            t = rng.uniform(0, length, 120)
-            pts.append(c + np.stack([np.cos(ang) * t, np.sin(ang) * t, z + 0.2 * t], 1) + rng.normal(0, 0.005, (120, 3)))
-    xw = rng.uniform(-0.5, 5.0, 3000)
-    pts.append(np.stack([xw, rng.normal(0, 0.003, 3000), _ground_z(xw, 0 * xw) + 1.0 + rng.normal(0, 0.003, 3000)], 1))
-    _, poses, _, _ = _side_cloud(seed)
-    return np.vstack(pts), poses, objects
-
-
-@pytest.mark.parametrize("seed", [0, 1, 2, 3])
-def test_posts_in_rough_depth_are_post_like_and_pole_like_stems_are_not(seed):
-    points, poses, objects = _rough_row(seed)
-    cands = find_trunk_candidates(points, poses)
-    for kind, c in objects:
-        near = [k for k in cands if np.linalg.norm(k.base[:2] - c[:2]) < 0.05]
-        if kind == "post":
-            assert len(near) == 1 and near[0].post_like and not near[0].tree_like
-        else:  # found or not, a stem is never taken for a post
-            assert not any(k.post_like for k in near)
-
-
 def test_the_row_line_is_drawn_in_the_map_not_from_a_wandering_camera():
     """Columns on one straight row whose distances from a wandering camera path read 1.26-1.64 m are all on the
     row line; a stake 0.6 m across from it is not, whatever its distance from the cameras."""
