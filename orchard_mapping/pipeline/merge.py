@@ -12,7 +12,7 @@ import numpy as np
 from orchard_mapping.config import OrchardConfig
 from orchard_mapping.core.alignment import align_sides, icp_merge, pair_trunks
 from orchard_mapping.core.alignment_types import AlignmentSide, SideAlignment
-from orchard_mapping.core.geometry import SlabIndex, move_with_keyframes
+from orchard_mapping.core.geometry import SlabIndex, move_with_keyframes, rotation_angle_deg
 from orchard_mapping.core.merge import HeightPrior, InitialTransform, SemanticPair, initial_transform
 from orchard_mapping.core.posts import post_shapes
 from orchard_mapping.core.semantic_ba import HeightAnchor, SemanticBAResult, SideShapes, semantic_bundle_adjust
@@ -54,6 +54,13 @@ GLOBAL_FEATURES = "global_features"
 
 
 MERGED_BY_GLOBAL_FEATURES = "merged_by_global_features"
+
+# deg: the most the initial transform from the trunk pairs may turn the back side from the global features'
+# alignment. That alignment faces the sides at each other to within a few degrees (its error: 0.6-4.3 deg on the
+# simulator's 10-tree dense, standard and wind rows, 2.0-6.5 deg on the scanned-pine rows); the pairs then
+# correct it by 0.5-5 deg. Two pairs of which one joins two different trees can turn the back side round: a
+# hand-held scanned-pine row (seed 3, run seed 1) merged 170 deg off, the global features alone 6.5 deg.
+MAX_TURN_FROM_ALIGNMENT_DEG = 30.0
 
 
 def merge_sides(front: SideMap, back: SideMap, cfg: OrchardConfig) -> MergeOutcome:
@@ -99,6 +106,12 @@ def merge_sides(front: SideMap, back: SideMap, cfg: OrchardConfig) -> MergeOutco
     t0 = time.perf_counter()
     it = initial_transform(pairs, cfg.merge, prior)
     seconds["initial_transform"] = time.perf_counter() - t0
+    turn = rotation_angle_deg(al.T_front_back[:3, :3].T @ it.T_front_back[:3, :3])
+    if turn > MAX_TURN_FROM_ALIGNMENT_DEG:
+        log.warning("the trunk pairs %s turn the back side %.0f deg from where the global features put it (at most "
+                    "%.0f): a pair of two different trees; merged from the global features, every tree flagged %s",
+                    list(al.pairs), turn, MAX_TURN_FROM_ALIGNMENT_DEG, MERGED_BY_GLOBAL_FEATURES)
+        return MergeOutcome(GLOBAL_FEATURES, al.T_front_back, al.pairs, al, None, None, None, seconds)
     sba = shapes = None
     if cfg.merge.method == "semantic_ba":
         t0 = time.perf_counter()
