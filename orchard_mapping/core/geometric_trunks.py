@@ -42,6 +42,7 @@ from orchard_mapping.core.canonical_frame import canonical_frame
 from orchard_mapping.core.detection import CLASS_TRUNK, Detection
 from orchard_mapping.core.geometry import transform_points
 from orchard_mapping.core.odometry import backproject
+from orchard_mapping.core.trees import row_direction
 from orchard_mapping.core.types import CameraIntrinsics
 from orchard_mapping.errors import AlignmentError
 
@@ -379,8 +380,8 @@ def columns_to_model(cands: list[TrunkCandidate], detected: np.ndarray, min_dete
     on_row = trees  # one column alone is its own row line
     if len(cands) >= 2:
         feet = np.array([c.base - (c.base @ up) * up for c in cands])  # (C, 3) m odom, across up
-        _, _, vt = np.linalg.svd(feet - feet.mean(axis=0), full_matrices=False)
-        across = np.cross(up, vt[0]) / np.linalg.norm(np.cross(up, vt[0]))
+        across = np.cross(up, row_direction(feet))
+        across /= np.linalg.norm(across)
         ref = float(np.median([c.base @ across for c in (agreed if len(agreed) >= 2 else trees)]))
         on_row = [c for c in trees if abs(float(c.base @ across) - ref) <= ROW_LINE_TOLERANCE_M]
     return on_row if only else [c for c in on_row if not any(c is a for a in agreed)]
