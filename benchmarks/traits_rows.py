@@ -2,6 +2,7 @@
 
     .venv/bin/python benchmarks/traits_rows.py [--rows standard:31 wind:32 slope_weeds:33] [--trees 10]
         [--workdir DIR (default: the system temporary folder/traits_rows)] [--reuse] [--json out.json]
+        [--set KEY=VALUE ...]  (the merge and traits stage's configuration, e.g. --set traits.share_reach_m=0)
 
 Per row: simulate (seeded), reconstruct both sides once (pipeline.reconstruct_side), then the merge and the
 traits stage with each segmentation (cutting planes, shrink-and-expand) and the practice the paper replaces
@@ -19,7 +20,7 @@ import tempfile
 import time
 from pathlib import Path
 
-from orchard_mapping.config import load_config
+from orchard_mapping.config import load_config, parse_sets, unflatten
 from orchard_mapping.eval.evaluate import evaluate_result
 from orchard_mapping.io.results import portable_json, write_trees
 from orchard_mapping.io.sidemap_codec import decode_side_map, encode_side_map
@@ -70,6 +71,8 @@ def main() -> None:
     ap.add_argument("--workdir", type=Path, default=Path(tempfile.gettempdir()) / "traits_rows")
     ap.add_argument("--reuse", action="store_true", help="reuse simulated rows and side maps in --workdir")
     ap.add_argument("--json", type=Path, default=None)
+    ap.add_argument("--set", action="append", default=[], metavar="KEY=VALUE",
+                    help="configuration of the merge and the traits stage (repeatable)")
     a = ap.parse_args()
     rows = []
     print("| row | method | trees | height MAE cm | volume MAPE % | volume bias % | points right % "
@@ -78,7 +81,7 @@ def main() -> None:
     for spec in a.rows:
         scenario, seed = spec.split(":")
         sim, maps = side_maps(a.workdir / f"{scenario}_{seed}_{a.trees}trees", scenario, int(seed), a.trees, a.reuse)
-        cfg = load_config()
+        cfg = load_config(overrides=unflatten(parse_sets(a.set)))
         merged, clouds, trees = merge_to_trees(maps, cfg)
         for method in ("cutting_planes", "shrink_and_expand", "one_side_doubled"):
             c = cfg.model_copy(update={"traits": dataclasses.replace(

@@ -236,6 +236,29 @@ def canopy_volume(points: np.ndarray, ground_point: np.ndarray, ground_normal: n
     return alpha_complex_volume(crown, alpha_m)
 
 
+def mirrored_share(own: np.ndarray, other: np.ndarray, trunk_point: np.ndarray, along: np.ndarray,
+                   reach_m: float) -> np.ndarray:
+    """(M,) bool over a neighbour's points other (M, 3): those lying where this tree's crown would reach if it
+    were as wide towards the neighbour as away from it, i.e. within reach_m of the mirror image of this tree's
+    own points (N, 3) on the far side from the neighbour, mirrored across the plane through trunk_point (3,)
+    normal to along (3,), the row direction. Where crowns interlock a split of the points gives the shared
+    leaves to one tree only; a tree's own alpha shape (the volume's definition) holds them too."""
+    own = _check_points(own, "own points")
+    other = _check_points(other, "neighbour points")
+    if len(own) == 0 or len(other) == 0 or not reach_m > 0:
+        return np.zeros(len(other), bool)
+    d = _unit(along, "row direction")
+    p0 = np.asarray(trunk_point, float).reshape(3)
+    towards = np.sign(np.median((other - p0) @ d))  # the neighbour's side of the trunk
+    s_own = (own - p0) @ d  # (N,) m along the row from the trunk
+    far = own[s_own * towards < 0]
+    if len(far) == 0:
+        return np.zeros(len(other), bool)
+    mirrored = far - 2.0 * np.outer((far - p0) @ d, d)  # (F, 3)
+    dist, _ = cKDTree(mirrored).query(other, distance_upper_bound=reach_m)
+    return np.isfinite(dist)
+
+
 def voxel_downsample(points: np.ndarray, voxel_m: float) -> tuple[np.ndarray, np.ndarray]:
     """(centroids (V, 3), voxel of each input point (N,)): one point per occupied cubic voxel of side
     voxel_m (m), the mean of its points. voxel_m <= 0 keeps every point."""

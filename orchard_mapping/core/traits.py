@@ -12,7 +12,14 @@ from typing import Literal
 
 import numpy as np
 
-from orchard_mapping.core.canopy import canopy_base_height, canopy_volume, main_body, tree_height, voxel_downsample
+from orchard_mapping.core.canopy import (
+    canopy_base_height,
+    canopy_volume,
+    main_body,
+    mirrored_share,
+    tree_height,
+    voxel_downsample,
+)
 from orchard_mapping.core.segmentation import (
     cutting_plane_segmentation,
     ground_and_post_masks,
@@ -86,13 +93,17 @@ class TraitsParams:
     # m, trellis wires are looked for above this (segmentation.row_line_mask): the ground and low weeds form
     # lines along the row too; trellis wires run at 0.5 m and up (the simulator's at 0.9, 1.5, 2.1 m)
     wire_min_height_m: float = 0.3
+    # m: a neighbour's points within this of the mirror image of a tree's far half count in that tree's canopy
+    # volume too (core.canopy.mirrored_share; 0: off): where crowns interlock each tree's alpha shape holds the
+    # shared leaves, which a split of the points gives to one tree only.
+    share_reach_m: float = 0.05
 
     def __post_init__(self) -> None:
         for name in ("alpha_m", "grid_min_m", "body_cell_m"):
             if not getattr(self, name) > 0:
                 raise TraitsError(f"traits.{name} must be > 0, got {getattr(self, name)!r}")
         for name in ("ground_margin_m", "post_margin_m", "height_support_radius_m", "voxel_m", "max_reach_m",
-                     "max_lateral_m", "wire_min_height_m"):
+                     "max_lateral_m", "wire_min_height_m", "share_reach_m"):
             if not getattr(self, name) >= 0:
                 raise TraitsError(f"traits.{name} must be >= 0, got {getattr(self, name)!r}")
         if self.height_min_support < 0 or self.close_voxels < 0:
@@ -175,6 +186,10 @@ def measure_row(points: np.ndarray, trunk_positions: np.ndarray, ground_points: 
     tree = tree_v[inv]
     out: list[TreeMorphology] = []
     crowns: list[np.ndarray] = []
+    d_row = np.asarray(row_direction, float) - (np.asarray(row_direction, float) @ up) / (up @ up) * up
+    along_order = np.argsort(tr @ d_row)  # (T,) trees in row order
+    place = np.empty(len(tr), int)
+    place[along_order] = np.arange(len(tr))
     for t in range(len(tr)):
         mine = tree == t
         n_pts = int(mine.sum())
@@ -198,7 +213,9 @@ def measure_row(points: np.ndarray, trunk_positions: np.ndarray, ground_points: 
         k = rank[t]
         sep = bool((k == 0 or separated[k - 1]) and (k == len(tr) - 1 or separated[k]))
         out.append(TreeMorphology(t, h, float("nan"), n_pts, c, sep, by_side))
-        crowns.append(mine_v)
+        shared = [cen[tree_v == n][mirrored_share(mine_v, cen[tree_v == n], tr[t], d_row, params.share_reach_m)]
+                  for n in (along_order[place[t] + k] for k in (-1, 1) if 0 <= place[t] + k < len(tr))]
+        crowns.append(np.concatenate([mine_v, *shared]))
 
     def volume(m: TreeMorphology) -> float:
         if not np.isfinite(m.clear_height_m):

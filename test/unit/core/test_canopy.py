@@ -10,6 +10,7 @@ from orchard_mapping.core.canopy import (
     alpha_complex,
     alpha_complex_volume,
     alpha_regions,
+    mirrored_share,
     tree_height,
 )
 
@@ -149,3 +150,31 @@ def test_the_main_body_leaves_a_wire_stub_above_the_crown_out():
     assert body[:len(crown)].all() and not body[len(crown):].any()
     h = tree_height(pts[body], np.zeros(3), np.array([0, 0, 1.0]), support_radius_m=0.03, min_support=3)
     assert abs(h - 2.0) < 0.01
+
+
+def _leafy_ball(rng: np.random.Generator, centre: tuple[float, float, float], r: float, n: int) -> np.ndarray:
+    """(n, 3) points filling a ball (a crown's leaves, seen through its gaps)."""
+    d = rng.normal(size=(n, 3))
+    d /= np.linalg.norm(d, axis=1, keepdims=True)
+    return np.asarray(centre) + d * (r * rng.uniform(size=(n, 1)) ** (1 / 3))
+
+
+@pytest.mark.parametrize("seed", [0, 1, 2])
+def test_interlocking_crowns_get_back_the_volume_a_split_gives_the_neighbour(seed):
+    """Two leafy balls (r 0.5 m) 0.7 m apart, split at the mid-plane as the cutting planes split a row: each
+    loses the cap beyond the cut (6 % of its volume). The neighbour's points in the mirror image of its far half
+    give it back; two balls 1.2 m apart share nothing."""
+    rng = np.random.default_rng(seed)
+    r, along = 0.5, np.array([1.0, 0.0, 0.0])
+    true_ball = 4 / 3 * np.pi * r**3
+    a, b = _leafy_ball(rng, (0.0, 0, 1.5), r, 20000), _leafy_ball(rng, (0.7, 0, 1.5), r, 20000)
+    pts = np.concatenate([a, b])
+    own, other = pts[pts[:, 0] < 0.35], pts[pts[:, 0] >= 0.35]
+    split = alpha_complex_volume(own, 0.8)
+    share = mirrored_share(own, other, np.array([0.0, 0.0, 0.0]), along, 0.05)
+    shared = alpha_complex_volume(np.concatenate([own, other[share]]), 0.8)
+    assert split < 0.955 * true_ball, split / true_ball
+    assert abs(shared / true_ball - 1) < 0.03, shared / true_ball
+    assert 0 < share.sum() < 0.5 * len(b)  # the lens, not the neighbour's whole crown
+    far = _leafy_ball(rng, (1.2, 0, 1.5), r, 20000)
+    assert not mirrored_share(a, far, np.zeros(3), along, 0.05).any()
