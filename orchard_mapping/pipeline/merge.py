@@ -161,6 +161,7 @@ def tree_of_trunk(trees: list[ResultTree]) -> dict[tuple[str, int], int]:
 
 
 OFF_ROW_LINE = "off_row_line"  # a one-sided trunk far across the row's line: not this row's tree
+LOCAL_GROUND_NORMAL = "local_ground_normal"  # trees.json: unit up normal (map) of the local ground both sides fitted
 PAIRED_AFTER_MERGE = "paired_after_merge"  # one tree from a front-only and a back-only trunk at one place
 
 
@@ -196,6 +197,7 @@ def two_side_trees(m: MergeOutcome, sides: dict[str, SideMap], cfg: OrchardConfi
         paired["front"].add(i)
         paired["back"].add(j)
         rng = np.random.default_rng((cfg.seed, k))
+        ground_normal = None
         if m.sba is not None and m.shapes is not None:
             # The shared trunk after the semantic BA, down its axis to the ground: each side's base placed
             # by that side's adjusted camera, the foot on the best ground either side has (foot_on_shared_axis).
@@ -212,6 +214,7 @@ def two_side_trees(m: MergeOutcome, sides: dict[str, SideMap], cfg: OrchardConfi
             shared = two_side_ground(near, Tt, pos, r, cfg.ground, rng)
             if shared is not None:
                 pos = shared.point
+                ground_normal = shared.normal if shared.normal @ z > 0 else -shared.normal
         else:  # the feet on the best ground either side has (as above), each side's carried into map
             feet = [(ground_kind(f), f.base), (ground_kind(b), T_fb[:3, :3] @ b.base + T_fb[:3, 3])]
             pos = foot_from_feet(feet)
@@ -226,9 +229,12 @@ def two_side_trees(m: MergeOutcome, sides: dict[str, SideMap], cfg: OrchardConfi
             diameter = float(np.mean(one)) if one else None
             if not one:
                 flags.append("trunk_hidden_at_diameter_height")
+        # the plane both sides' points pin (two_side_ground): the tree's height is measured along its normal
+        extra = {} if ground_normal is None else {LOCAL_GROUND_NORMAL: [round(float(v), 6) for v in ground_normal]}
         trees.append(ResultTree(len(trees), tuple(float(v) for v in pos), diameter, per_side={
             "front": {"trunk_id": i, "diameter_m": f.diameter_m},
-            "back": {"trunk_id": j, "diameter_m": b.diameter_m}}, flags=tuple(flags) + _carried_flags(f, b)))
+            "back": {"trunk_id": j, "diameter_m": b.diameter_m}}, flags=tuple(flags) + _carried_flags(f, b),
+            extra=extra))
     for side, T in (("front", np.eye(4)), ("back", T_fb)):
         for t in sides[side].trunks:
             if t.id in paired[side]:

@@ -27,7 +27,14 @@ from orchard_mapping.core.trunks import TrunkLandmark, side_up_direction
 from orchard_mapping.io.laz import CLASS, SIDE_CODE
 from orchard_mapping.io.results import ResultTree
 from orchard_mapping.pipeline.fruit import TreeFruit, fruit_points, measure_fruit
-from orchard_mapping.pipeline.merge import OFF_ROW_LINE, MergeOutcome, map_poses, merge_to_trees, ray_in_map
+from orchard_mapping.pipeline.merge import (
+    LOCAL_GROUND_NORMAL,
+    OFF_ROW_LINE,
+    MergeOutcome,
+    map_poses,
+    merge_to_trees,
+    ray_in_map,
+)
 from orchard_mapping.pipeline.trunks import TrunkWorker
 
 __all__ = ["NO_CANOPY_POINTS", "SEGMENTATION_UNCERTAIN", "RowLabels", "merge_and_measure", "measure_trees"]
@@ -77,8 +84,11 @@ def _tree_landmarks(trees: list[ResultTree], sides: dict[str, SideMap]) -> Itera
 
 def _tree_grounds(trees: list[ResultTree], sides: dict[str, SideMap], poses: dict[str, np.ndarray],
                   up: np.ndarray) -> np.ndarray:
-    """(T, 3) unit up normal of each tree's local ground in map: the mean of the planes its sides fitted,
-    carried into map; `up` where no side fitted one."""
+    """(T, 3) unit up normal of each tree's local ground in map: the plane fitted to both sides' points where the
+    merge fitted one (LOCAL_GROUND_NORMAL), else the mean of the planes its sides fitted, carried into map; `up`
+    where no side fitted one. Each side sees its half of the ground round the trunk, so its plane tilts freely
+    about the row's line; the plane through both halves does not (slope_weeds 33: height MAE 3.6 -> see
+    docs/traits.md)."""
     normals: list[list[np.ndarray]] = [[] for _ in trees]
     for k, side, lm in _tree_landmarks(trees, sides):
         if lm.ground is not None:
@@ -89,6 +99,10 @@ def _tree_grounds(trees: list[ResultTree], sides: dict[str, SideMap], poses: dic
         if ns:
             n = np.mean(ns, axis=0)
             out[k] = n / np.linalg.norm(n)
+    for k, t in enumerate(trees):
+        if t.extra.get(LOCAL_GROUND_NORMAL) is not None:
+            n = np.asarray(t.extra[LOCAL_GROUND_NORMAL], float)
+            out[k] = n if n @ up > 0 else -n
     return out
 
 

@@ -557,6 +557,14 @@ def test_each_tree_is_measured_in_the_merged_map(reconstructed_model, accuracy):
         err = abs(p["est_canopy_volume_m3"] - p["true_canopy_volume_m3"]) / p["true_canopy_volume_m3"]
         accuracy.at_most("canopy volume error of one tree, %", 100 * err, 15.0)
     trees = read_trees(out / "trees.json")
+    # each tree's local ground, fitted to both sides' points (its height is measured along that normal)
+    truth = json.loads((sim / "ground_truth.json").read_text())
+    R_world_map = np.asarray(truth["sides"]["front"]["T_world_odom"], float)[:3, :3]  # map is the front's odom
+    by_id, true_by_id = {t.id: t for t in trees}, {t["id"]: t for t in truth["trees"]}
+    for p in rep["per_tree"]:
+        n = R_world_map @ np.asarray(by_id[p["result_id"]].extra["local_ground_normal"], float)
+        n_true = np.asarray(true_by_id[p["true_id"]]["local_ground"]["normal"], float)
+        accuracy.at_most("local ground normal error, deg", float(np.degrees(np.arccos(min(1.0, n @ n_true)))), 5.0)
     laz = read_laz(out / "trees.laz")
     assert set(np.unique(laz["tree_id"])) <= {-1} | {t.id for t in trees}
     for t in trees:  # each tree holds canopy and trunk points
