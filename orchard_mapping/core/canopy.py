@@ -135,8 +135,9 @@ def tree_height(points: np.ndarray, ground_point: np.ndarray, ground_normal: np.
                 support_radius_m: float, min_support: int) -> float:
     """Tree height (m): distance along the ground normal from the local ground plane (ground_point (3,),
     unit-up ground_normal (3,), map frame) to the highest of the tree's points (N, 3) that has at least
-    `min_support` other points within `support_radius_m`. A flying point a depth camera leaves above the
-    canopy has none; NaN when no point has the support."""
+    `min_support` other points within `support_radius_m` and does not lie on a level line (`_on_level_line`:
+    a trellis wire running just above a crown joins its body). A flying point a depth camera leaves above the
+    canopy has no support; NaN when no point qualifies."""
     h = height_above_plane(points, ground_point, ground_normal)  # (N,)
     if support_radius_m < 0 or min_support < 0:
         raise CanopyError(f"support radius and count must be >= 0, got {support_radius_m!r}, {min_support!r}")
@@ -145,6 +146,8 @@ def tree_height(points: np.ndarray, ground_point: np.ndarray, ground_normal: np.
     if min_support == 0:
         return float(h.max())
     pts = np.asarray(points, float)
+    n = _unit(ground_normal, "ground normal")
+    tree: cKDTree | None = None  # over all the points, for the line test (built when a candidate needs it)
     order = np.argsort(-h, kind="stable")
     # Look at the highest candidates only: a KD-tree over the points within reach of them. Doubling the
     # candidate count when all of them are unsupported keeps this exact for any number of flying points.
@@ -157,10 +160,35 @@ def tree_height(points: np.ndarray, ground_point: np.ndarray, ground_normal: np.
             cKDTree(pts[near]).query_ball_point(pts[cand], support_radius_m, return_length=True)) - 1  # (C,)
         hit = np.nonzero(counts >= min_support)[0]
         if len(hit):
-            return float(h[cand[hit[0]]])
+            if tree is None:
+                tree = cKDTree(pts)
+            for k in hit:
+                if not _on_level_line(pts, h, tree, cand[k], n):
+                    return float(h[cand[k]])
         if n_cand == len(h):
             return float("nan")
         n_cand = min(len(h), 4 * n_cand)
+
+
+# A trellis wire seen a few centimetres above a crown: within WIRE_REACH_M of a point on it the points form a
+# line (second singular value under WIRE_LINEARITY of the first) lying within WIRE_LEVEL_DEG of level. A crown's
+# top is a clump of leaves; a leader's tip is a line too, but upright. 10-tree standard row 31: the top of its end
+# tree was 9 cm up such a wire (its 40 highest points spread 1.29 m along the row, 3 cm across).
+WIRE_REACH_M = 0.2
+WIRE_BELOW_M = 0.03  # m: the points no lower than this under the candidate (not the leaves the wire runs over)
+WIRE_LINEARITY = 0.3  # the two sides' copies of a wire lie 2-3 cm apart after the merge: 0.16-0.22 there
+WIRE_LEVEL_DEG = 30.0
+
+
+def _on_level_line(pts: np.ndarray, h: np.ndarray, tree: cKDTree, i: int, up: np.ndarray) -> bool:
+    """Whether point i of pts (N, 3), h (N,) m above the ground, lies on a level line (module constants
+    WIRE_*); tree: a KD-tree of pts."""
+    idx = np.asarray(tree.query_ball_point(pts[i], WIRE_REACH_M), np.int64)
+    near = pts[idx[h[idx] >= h[i] - WIRE_BELOW_M]]  # (M, 3)
+    if len(near) < 5:
+        return False
+    _, sv, vt = np.linalg.svd(near - near.mean(axis=0), full_matrices=False)
+    return bool(sv[1] < WIRE_LINEARITY * sv[0] and abs(vt[0] @ up) < np.sin(np.radians(WIRE_LEVEL_DEG)))
 
 
 def canopy_base_height(points: np.ndarray, ground_point: np.ndarray, ground_normal: np.ndarray, *,

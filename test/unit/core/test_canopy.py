@@ -178,3 +178,24 @@ def test_interlocking_crowns_get_back_the_volume_a_split_gives_the_neighbour(see
     assert 0 < share.sum() < 0.5 * len(b)  # the lens, not the neighbour's whole crown
     far = _leafy_ball(rng, (1.2, 0, 1.5), r, 20000)
     assert not mirrored_share(a, far, np.zeros(3), along, 0.05).any()
+
+
+@pytest.mark.parametrize("seed", [0, 1, 2])
+def test_a_wire_over_the_crown_is_not_its_top_but_an_upright_leader_is(seed):
+    """A crown (ellipsoid shell, top 2.0 m) with a trellis wire 5 cm above it (two copies 2.5 cm apart, as the
+    two sides' merge leaves a wire, 1.5 m along the row): the height is the crown's. An upright leader 25 cm
+    above the crown, as thin as the wire: the height is the leader's tip."""
+    rng = np.random.default_rng(seed)
+    d = rng.normal(size=(20000, 3))
+    d /= np.linalg.norm(d, axis=1, keepdims=True)
+    crown = np.array([0.0, 0.0, 1.4]) + d * [0.5, 0.4, 0.6] + rng.normal(0, 0.003, (20000, 3))
+    x = rng.uniform(-0.75, 0.75, 300)
+    wire = np.concatenate([np.c_[x[:150], np.full(150, 0.0), np.full(150, 2.05)],
+                           np.c_[x[150:], np.full(150, 0.025), np.full(150, 2.05)]]) + rng.normal(0, 0.003, (300, 3))
+    up, foot = np.array([0.0, 0.0, 1.0]), np.zeros(3)
+    kw = dict(support_radius_m=0.03, min_support=3)
+    top = float(crown[:, 2].max())
+    assert abs(tree_height(np.vstack([crown, wire]), foot, up, **kw) - top) < 0.01
+    z = np.linspace(2.0, 2.25, 60)
+    leader = np.c_[rng.normal(0, 0.005, (60, 2)), z]
+    assert abs(tree_height(np.vstack([crown, leader]), foot, up, **kw) - 2.25) < 0.01
