@@ -147,7 +147,6 @@ def tree_height(points: np.ndarray, ground_point: np.ndarray, ground_normal: np.
         return float(h.max())
     pts = np.asarray(points, float)
     n = _unit(ground_normal, "ground normal")
-    tree: cKDTree | None = None  # over all the points, for the line test (built when a candidate needs it)
     order = np.argsort(-h, kind="stable")
     # Look at the highest candidates only: a KD-tree over the points within reach of them. Doubling the
     # candidate count when all of them are unsupported keeps this exact for any number of flying points.
@@ -160,10 +159,13 @@ def tree_height(points: np.ndarray, ground_point: np.ndarray, ground_normal: np.
             cKDTree(pts[near]).query_ball_point(pts[cand], support_radius_m, return_length=True)) - 1  # (C,)
         hit = np.nonzero(counts >= min_support)[0]
         if len(hit):
-            if tree is None:
-                tree = cKDTree(pts)
+            # the line test reads points no lower than WIRE_BELOW_M under a candidate: those of `top` (whose
+            # first n_cand are the candidates, in order)
+            top = order[: int(np.searchsorted(-h[order], -(h[cand[-1]] - WIRE_BELOW_M), side="right"))]
+            p_top, h_top = pts[top], h[top]
+            tree = cKDTree(p_top)
             for k in hit:
-                if not _on_level_line(pts, h, tree, cand[k], n):
+                if not _on_level_line(p_top, h_top, tree, int(k), n):
                     return float(h[cand[k]])
         if n_cand == len(h):
             return float("nan")

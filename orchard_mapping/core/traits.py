@@ -162,7 +162,8 @@ def measure_row(points: np.ndarray, trunk_positions: np.ndarray, ground_points: 
                                          post_points=post_points, post_radius_m=post_radius_m,
                                          post_margin_m=params.post_margin_m, height=height)
     # the trellis wires: lines along the row at one height and depth (in a frame of the row: x along, z up)
-    wire = row_line_mask(cen @ row_axes(row_direction, up).T, height,
+    axes = row_axes(row_direction, up)  # (3, 3) rows: along the row (level), across, up
+    wire = row_line_mask(cen @ axes.T, height,
                          min_height_m=params.wire_min_height_m) & ~ground & ~post
     keep = np.flatnonzero(~ground & ~post & ~wire)
     tree_v = np.full(len(cen), -1)
@@ -186,8 +187,7 @@ def measure_row(points: np.ndarray, trunk_positions: np.ndarray, ground_points: 
     tree = tree_v[inv]
     out: list[TreeMorphology] = []
     crowns: list[np.ndarray] = []
-    d_row = np.asarray(row_direction, float) - (np.asarray(row_direction, float) @ up) / (up @ up) * up
-    along_order = np.argsort(tr @ d_row)  # (T,) trees in row order
+    along_order = np.argsort(tr @ axes[0])  # (T,) trees in row order
     place = np.empty(len(tr), int)
     place[along_order] = np.arange(len(tr))
     for t in range(len(tr)):
@@ -213,8 +213,8 @@ def measure_row(points: np.ndarray, trunk_positions: np.ndarray, ground_points: 
         k = rank[t]
         sep = bool((k == 0 or separated[k - 1]) and (k == len(tr) - 1 or separated[k]))
         out.append(TreeMorphology(t, h, float("nan"), n_pts, c, sep, by_side))
-        shared = [cen[tree_v == n][mirrored_share(mine_v, cen[tree_v == n], tr[t], d_row, params.share_reach_m)]
-                  for n in (along_order[place[t] + k] for k in (-1, 1) if 0 <= place[t] + k < len(tr))]
+        neighbours = [cen[tree_v == along_order[place[t] + k]] for k in (-1, 1) if 0 <= place[t] + k < len(tr)]
+        shared = [nb[mirrored_share(mine_v, nb, tr[t], axes[0], params.share_reach_m)] for nb in neighbours]
         crowns.append(np.concatenate([mine_v, *shared]))
 
     def volume(m: TreeMorphology) -> float:

@@ -91,20 +91,19 @@ def _tree_grounds(trees: list[ResultTree], sides: dict[str, SideMap], poses: dic
     where no side fitted one. Each side sees its half of the ground round the trunk, so its plane tilts freely
     about the row's line; the plane through both halves does not (slope_weeds 33: height MAE 3.6 -> see
     docs/traits.md)."""
-    normals: list[list[np.ndarray]] = [[] for _ in trees]
+    normals: list[list[np.ndarray]] = [
+        [np.asarray(t.extra[LOCAL_GROUND_NORMAL], float)] if t.extra.get(LOCAL_GROUND_NORMAL) is not None else []
+        for t in trees]
+    two_side = [bool(ns) for ns in normals]
     for k, side, lm in _tree_landmarks(trees, sides):
-        if lm.ground is not None:
+        if lm.ground is not None and not two_side[k]:
             _, n = ray_in_map(lm.ground.point, lm.ground.normal, sides[side], poses[side])
-            normals[k].append(n if n @ up > 0 else -n)
+            normals[k].append(n)
     out = np.tile(up, (len(trees), 1))
     for k, ns in enumerate(normals):
         if ns:
-            n = np.mean(ns, axis=0)
+            n = np.mean([v if v @ up > 0 else -v for v in ns], axis=0)
             out[k] = n / np.linalg.norm(n)
-    for k, t in enumerate(trees):
-        if t.extra.get(LOCAL_GROUND_NORMAL) is not None:
-            n = np.asarray(t.extra[LOCAL_GROUND_NORMAL], float)
-            out[k] = n if n @ up > 0 else -n
     return out
 
 

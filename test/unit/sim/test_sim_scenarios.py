@@ -51,7 +51,6 @@ def test_slope_weeds_has_more_weeds_and_steeper_ground():
     assert sw.terrain.slope > std.terrain.slope
 
 
-
 def test_young_row_has_thin_trunks_and_small_crowns():
     """A young row's trunks are 18-36 mm at the diameter height (standard: 40-90 mm) and its trees lower."""
     young = build_scene(load_scenario("young", {"row.n_trees": 8}), 0)
@@ -67,6 +66,7 @@ def test_young_row_has_thin_trunks_and_small_crowns():
     assert np.all((d_young > 0.015) & (d_young < 0.04)), d_young
     assert d_young.max() < d_std.min(), (d_young, d_std)
     assert heights(young).max() < heights(std).max(), (heights(young), heights(std))
+
 
 @pytest.mark.parametrize("direction, back_sign", [("return", -1.0), ("same", 1.0)])
 def test_back_side_walked_round_the_row_or_the_same_way(direction, back_sign):
