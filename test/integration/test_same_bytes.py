@@ -44,7 +44,7 @@ def row(scratch) -> Iterator[Path]:
 def _start_run(sim: Path, out: Path, threads: int) -> subprocess.Popen:
     """`orchard-map run` in a child process with `threads` OpenMP and OpenBLAS threads (both are read once, as
     the libraries load: only a fresh process can change them)."""
-    # started as from a shell: without what this process's imports put into its environment (test_memory.py)
+    # started as from a shell: without what this process's imports put into its environment (benchmarks/memory_growth.py)
     env = {k: v for k, v in os.environ.items() if k not in ("TCM_ENABLE", "LD_LIBRARY_PATH")}
     env.update(ROS_AUTOMATIC_DISCOVERY_RANGE="LOCALHOST", OMP_NUM_THREADS=str(threads),
                OPENBLAS_NUM_THREADS=str(threads))

@@ -21,13 +21,15 @@ def _sphere_surface(rng: np.random.Generator, n: int, r: float) -> np.ndarray:
 
 
 def _box_samples(rng: np.random.Generator, lo: np.ndarray, hi: np.ndarray, n_surf: int, n_in: int) -> np.ndarray:
-    """Points on the faces (area-weighted) and inside an axis-aligned box."""
+    """Points on the faces (area-weighted) and inside an axis-aligned box. The face points carry 10 um of noise,
+    as any sensor's: thousands of exactly coplanar points are qhull's degenerate case (the L's Delaunay took
+    15 s, 1.2 s with the noise; the volumes move by < 0.1 %)."""
     size = hi - lo
     areas = np.array([size[1] * size[2], size[0] * size[2], size[0] * size[1]] * 2)
     face = rng.choice(6, n_surf, p=areas / areas.sum())
     p = lo + rng.uniform(0, 1, (n_surf, 3)) * size
     ax = face % 3
-    p[np.arange(n_surf), ax] = np.where(face < 3, lo[ax], hi[ax])
+    p[np.arange(n_surf), ax] = np.where(face < 3, lo[ax], hi[ax]) + rng.normal(0, 1e-5, n_surf)
     return np.vstack([p, lo + rng.uniform(0, 1, (n_in, 3)) * size])
 
 
