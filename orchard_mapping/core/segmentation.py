@@ -48,6 +48,7 @@ __all__ = [
 ]
 
 EXPAND_SUBSTEPS = 4
+WIRE_KNOT_M = 0.25  # m along the row between the knots of a wire's fitted line (a wire sags a few cm over metres)
 WAIST_MIN_POINTS = 5  # a slice across the row with fewer points is a gap between crowns (waist_cuts)
 _UP = np.array([0.0, 0.0, 1.0])  # default up: map frame z
 _NN_SAMPLE = 4000  # points whose nearest-neighbour distance estimates the median spacing (stable to ~1 %)
@@ -363,7 +364,7 @@ def ground_and_post_masks(points: np.ndarray, tree_of_point: np.ndarray, ground_
 
 def row_line_mask(points: np.ndarray, height: np.ndarray, *, min_height_m: float, cell_m: float = 0.02,
                   half_length_m: float = 0.25, min_fill: float = 0.7, max_ring_fill: float = 0.05,
-                  reach_m: float = 1.0) -> np.ndarray:
+                  reach_m: float = 1.0, tube_factor: float = 1.5) -> np.ndarray:
     """(N,) bool: points on a thin line along the row (the trellis wires). Row frame: points (N, 3) with x
     along the row, y across, z up; height (N,) m above the local ground. On a grid of cell_m:
 
@@ -402,5 +403,37 @@ def row_line_mask(points: np.ndarray, height: np.ndarray, *, min_height_m: float
         return out
     reach = 2 * int(round(reach_m / cell_m)) + 1
     zone = ndimage.maximum_filter(shown, size=(reach, 3, 3))
-    out[cand] = zone[ijk[:, 0], ijk[:, 1], ijk[:, 2]]
+    in_zone = zone[ijk[:, 0], ijk[:, 1], ijk[:, 2]]  # (C,)
+    if tube_factor <= 0:
+        out[cand] = in_zone
+        return out
+    # Inside the leaves the zone's 6 cm block holds leaves round the hidden wire too: there the wire is the line
+    # through its shown stretches (per wire: a connected zone), and a point is the wire's within tube_factor x
+    # the shown points' own 90th-percentile distance from that line (their noise), at least a cell's half.
+    on_shown = shown[ijk[:, 0], ijk[:, 1], ijk[:, 2]]  # (C,)
+    wire_of, _ = ndimage.label(zone, structure=np.ones((3, 3, 3)))
+    lab = wire_of[ijk[:, 0], ijk[:, 1], ijk[:, 2]]  # (C,) 0 outside every zone
+    p = pts[cand]
+    keep = on_shown.copy()
+    for k in np.unique(lab[on_shown]):
+        mine, seen = lab == k, on_shown & (lab == k)
+        x, yz = p[seen, 0], p[seen, 1:]  # the shown stretch: along, (across, up)
+        order = np.argsort(x, kind="stable")
+        x, yz = x[order], yz[order]
+        edges = np.arange(x[0], x[-1] + WIRE_KNOT_M, WIRE_KNOT_M)  # knots along the wire
+        at = np.searchsorted(x, edges)
+        knots = [(float(np.median(x[a:b])), np.median(yz[a:b], axis=0)) for a, b in zip(at[:-1], at[1:], strict=True)
+                 if b - a >= 3]
+        if not knots:
+            continue
+        kx = np.array([q for q, _ in knots])  # (K,)
+        kyz = np.array([v for _, v in knots])  # (K, 2)
+
+        def off_line(px: np.ndarray, pyz: np.ndarray, kx: np.ndarray = kx, kyz: np.ndarray = kyz) -> np.ndarray:
+            line = np.column_stack([np.interp(px, kx, kyz[:, 0]), np.interp(px, kx, kyz[:, 1])])
+            return np.linalg.norm(pyz - line, axis=1)
+
+        tube = max(0.5 * cell_m, tube_factor * float(np.percentile(off_line(x, yz), 90)))
+        keep[mine] |= off_line(p[mine, 0], p[mine, 1:]) <= tube
+    out[cand] = in_zone & keep
     return out

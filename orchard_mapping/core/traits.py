@@ -94,6 +94,9 @@ class TraitsParams:
     # m, trellis wires are looked for above this (segmentation.row_line_mask): the ground and low weeds form
     # lines along the row too; trellis wires run at 0.5 m and up (the simulator's at 0.9, 1.5, 2.1 m)
     wire_min_height_m: float = 0.3
+    # where leaves hide a wire, its points are those within this x the noise of its shown stretches of the
+    # line through them (segmentation.row_line_mask; 0: every point of the 6 cm block round it)
+    wire_tube_factor: float = 1.5
     # m: a neighbour's points within this of the mirror image of a tree's far half count in that tree's canopy
     # volume too (core.canopy.mirrored_share; 0: off): where crowns interlock each tree's alpha shape holds the
     # shared leaves, which a split of the points gives to one tree only.
@@ -107,7 +110,7 @@ class TraitsParams:
             if not getattr(self, name) > 0:
                 raise TraitsError(f"traits.{name} must be > 0, got {getattr(self, name)!r}")
         for name in ("ground_margin_m", "post_margin_m", "height_support_radius_m", "voxel_m", "max_reach_m",
-                     "max_lateral_m", "wire_min_height_m", "share_reach_m"):
+                     "max_lateral_m", "wire_min_height_m", "share_reach_m", "wire_tube_factor"):
             if not getattr(self, name) >= 0:
                 raise TraitsError(f"traits.{name} must be >= 0, got {getattr(self, name)!r}")
         if self.height_min_support < 0 or self.close_voxels < 0:
@@ -169,8 +172,8 @@ def measure_row(points: np.ndarray, trunk_positions: np.ndarray, ground_points: 
                                          post_margin_m=params.post_margin_m, height=height)
     # the trellis wires: lines along the row at one height and depth (in a frame of the row: x along, z up)
     axes = row_axes(row_direction, up)  # (3, 3) rows: along the row (level), across, up
-    wire = row_line_mask(cen @ axes.T, height,
-                         min_height_m=params.wire_min_height_m) & ~ground & ~post
+    wire = row_line_mask(cen @ axes.T, height, min_height_m=params.wire_min_height_m,
+                         tube_factor=params.wire_tube_factor) & ~ground & ~post
     keep = np.flatnonzero(~ground & ~post & ~wire)
     tree_v = np.full(len(cen), -1)
     separated = np.ones(max(len(tr) - 1, 0), bool)

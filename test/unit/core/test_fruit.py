@@ -7,6 +7,7 @@ import pytest
 
 from orchard_mapping.core.fruit import (
     FruitError,
+    FruitObservation,
     FruitParams,
     SideFruit,
     associate_sides,
@@ -80,6 +81,30 @@ def test_views_of_one_fruit_make_one_fruit_and_touching_fruit_stay_two():
     assert np.all(np.abs(side.diameters_m - 0.08) < 0.004)
     # seen in fewer keyframes than min_views: dropped
     assert len(fruit_of_side("front", [o for o in obs if o.keyframe < 2], FruitParams()).positions) == 0
+
+
+def _observed(rng: np.random.Generator, centres: np.ndarray, radii: np.ndarray, views: np.ndarray,
+              first_id: int = 0) -> list[FruitObservation]:
+    """Each fruit seen in its number of keyframes, its centre and radius a little off in each (as measured)."""
+    return [FruitObservation(int(k), c + rng.normal(0, 0.002, 3), float(r * rng.uniform(0.97, 1.03)), 200, first_id + j)
+            for j, (c, r, n) in enumerate(zip(centres, radii, views, strict=True)) for k in range(int(n))]
+
+
+@pytest.mark.parametrize("seed", [0, 1, 2])
+def test_pieces_and_specks_far_smaller_than_the_sides_fruit_are_dropped(seed):
+    """30 apples (r 37-43 mm, 5-10 views) and 12 pieces of fruit or red specks the pixel model took for fruit
+    (r 12-25 mm, 3-4 views): the pieces go, every apple stays. A variety of small fruit (r 20 mm) keeps all."""
+    rng = np.random.default_rng(seed)
+    centres = np.column_stack([np.arange(42) * 0.2, rng.uniform(-0.3, 0.3, 42), rng.uniform(0.8, 2.0, 42)])
+    radii = np.r_[rng.uniform(0.037, 0.043, 30), rng.uniform(0.012, 0.025, 12)]
+    views = np.r_[rng.integers(5, 11, 30), rng.integers(3, 5, 12)]
+    obs = _observed(rng, centres, radii, views)
+    assert len(fruit_of_side("front", obs, FruitParams(min_size_of_median=0.0)).positions) == 42
+    kept = fruit_of_side("front", obs, FruitParams(min_size_of_median=0.7))
+    assert len(kept.positions) == 30
+    assert np.all(np.linalg.norm(kept.positions[:, None] - centres[None, :30], axis=2).min(axis=1) < 0.01)
+    small = _observed(rng, centres[:30], np.full(30, 0.02), views[:30])
+    assert len(fruit_of_side("front", small, FruitParams(min_size_of_median=0.7)).positions) == 30
 
 
 def test_both_sides_count_each_fruit_once_and_the_baselines_differ():
