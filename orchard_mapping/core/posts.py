@@ -272,6 +272,7 @@ def separate_trunks_from_posts(trunks: list[TrunkLandmark], posts: list[PostLand
         axes.append(a / np.linalg.norm(a))
     drop_trunks: set[int] = set()
     drop_posts: set[int] = set()
+    post_frames: dict[int, int] = {}  # trunk id -> frames of the posts given to it
     said: list[str] = []
     for t in trunks:
         r_trunk = t.diameter_m / 2 if t.diameter_m is not None else None
@@ -295,8 +296,10 @@ def separate_trunks_from_posts(trunks: list[TrunkLandmark], posts: list[PostLand
                             f"a trunk in {as_trunk}; reported as a post")
                 break
             drop_posts.add(p.id)
+            post_frames[t.id] = post_frames.get(t.id, 0) + as_post
             said.append(f"post {p.id} is trunk {t.id} ({gap * 1000:.0f} mm apart): a trunk in {as_trunk} frames, "
                         f"a post in {as_post}; not used as a post")
-    kept_trunks = [replace(t, id=i) for i, t in enumerate(t for t in trunks if t.id not in drop_trunks)]
+    kept_trunks = [replace(t, id=i, post_frames=t.post_frames + post_frames.get(t.id, 0))
+                   for i, t in enumerate(t for t in trunks if t.id not in drop_trunks)]
     kept_posts = [replace(p, id=i) for i, p in enumerate(p for p in posts if p.id not in drop_posts)]
     return kept_trunks, kept_posts, said

@@ -105,6 +105,27 @@ DUPLICATE_TREE_M = 0.25
 OFF_ROW_M = 0.5
 
 
+# m beyond the two radii within which a one-sided trunk and the other side's post are one object (the post's
+# place is half way up what its views saw: a degree of lean is ~2 cm there)
+POST_OF_OTHER_SIDE_TOL_M = 0.05
+
+
+def other_sides_post(position: np.ndarray, radius_m: float, trunk_frames: int, own_post_frames: int,
+                     posts: list[tuple[np.ndarray, float, int]], up: np.ndarray) -> int | None:
+    """Whether a trunk seen from one side only (its foot position (3,), radius m, the frames that called it a
+    trunk and those of its own side that called it a post) is a post the other side modelled (posts: (place
+    (3,), radius m, frames) in the same frame): the post's frames when it stands there (across the ground within
+    the two radii and POST_OF_OTHER_SIDE_TOL_M) and the frames calling the object a post are at least those
+    calling it a trunk (a tie going to the post, as within a side: core.posts.separate_trunks_from_posts); else
+    None."""
+    unit_up = np.asarray(up, float) / np.linalg.norm(up)
+    for place, radius, frames in posts:
+        rel = np.asarray(place, float) - np.asarray(position, float)
+        if np.linalg.norm(rel - (rel @ unit_up) * unit_up) <= radius + radius_m + POST_OF_OTHER_SIDE_TOL_M:
+            return frames if frames + own_post_frames >= trunk_frames else None
+    return None
+
+
 def _across_ground(positions: np.ndarray, up: np.ndarray) -> np.ndarray:
     """(T, 3) the positions (T, 3) with their height along the unit up (3,) taken out: distances across the
     ground, where trees are told apart (a foot misplaced up or down is still the same trunk)."""

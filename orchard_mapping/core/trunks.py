@@ -199,6 +199,9 @@ class TrunkLandmark:
     # axis above leans away from the camera by the taper's half-angle; the two-side merge uses this one.
     merge_axis: np.ndarray | None = None  # (3,) unit, up
     taper: float = 0.0  # m of radius per m up the axis (negative: thinner upwards)
+    # frames in which the detector called this object a post (core.posts.separate_trunks_from_posts gave it to
+    # the trunk, which more frames called it): the other side's post views are weighed against them in the merge
+    post_frames: int = 0
 
 
 def side_up_direction(poses: np.ndarray) -> np.ndarray:

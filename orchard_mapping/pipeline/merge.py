@@ -24,6 +24,7 @@ from orchard_mapping.core.trees import (
     merge_axis,
     one_sided_outliers,
     opposite_one_sided_pairs,
+    other_sides_post,
     row_direction,
     trunk_shapes,
     two_side_ground,
@@ -259,6 +260,9 @@ def _set_aside_one_sided(trees: list[ResultTree], merged: MergeOutcome, sides: d
     if len(trees) < 2:
         return trees
     up = side_up_direction(np.concatenate(list(map_poses(merged, sides).values())))
+    trees = _posts_of_the_other_side_out(trees, merged, sides, up)
+    if len(trees) < 2:
+        return trees
     two = np.array([len(t.per_side or {}) == 2 for t in trees])
     dup, off = one_sided_outliers(np.array([t.position for t in trees]), two, up)
     out = []
@@ -270,6 +274,36 @@ def _set_aside_one_sided(trees: list[ResultTree], merged: MergeOutcome, sides: d
         out.append(replace(t, flags=t.flags + (OFF_ROW_LINE,)) if o else t)
     # ids stay those of two_side_trees' list: the side merger's and the reporter's messages name them
     return join_opposite_one_sided(out, up)
+
+
+def _posts_of_the_other_side_out(trees: list[ResultTree], merged: MergeOutcome, sides: dict[str, SideMap],
+                                 up: np.ndarray) -> list[ResultTree]:
+    """The trees less the one-sided ones that are a post the other side modelled, by the frames of both sides:
+    a trunk seen from one side only, where the other side saw a post, is that post when the frames that called
+    the object a post (the other side's post views and those of its own side, TrunkLandmark.post_frames) are at
+    least those that called it a trunk, a tie going to the post as within a side
+    (core.posts.separate_trunks_from_posts). Dense row seed 41: a row-end post was a trunk in 18 front frames,
+    a post in 12 front and 13 back ones; as a tree it took 80 % of its neighbour's crown."""
+    T_fb = merged.T_front_back
+    posts = {side: [(T[:3, :3] @ p.place + T[:3, 3], p.radius_m, len(p.observations)) for p in sides[side].posts]
+             for side, T in (("front", np.eye(4)), ("back", T_fb))}
+    out = []
+    for t in trees:
+        lm = None
+        if len(t.per_side or {}) == 1:
+            side, own = next(iter(t.per_side.items()))
+            other = "back" if side == "front" else "front"
+            lm = next((x for x in sides[side].trunks if x.id == own["trunk_id"]), None)
+        frames = None if lm is None else other_sides_post(
+            np.asarray(t.position), (t.trunk_diameter_m or 0.0) / 2, len(lm.observations), lm.post_frames,
+            posts[other], up)
+        if frames is None:
+            out.append(t)
+            continue
+        log.warning("tree %d, a trunk seen from the %s side only (a trunk in %d frames, a post in %d), is the post "
+                    "the %s side saw (%d frames): a post, left out", t.id, side, len(lm.observations),
+                    lm.post_frames, other, frames)
+    return out
 
 
 def join_opposite_one_sided(trees: list[ResultTree], up: np.ndarray) -> list[ResultTree]:

@@ -158,6 +158,7 @@ def test_separate_trunks_from_posts_by_the_frames_that_saw_the_object():
     kept, kept_posts, said = separate_trunks_from_posts(trunks, posts, poses)
     assert [t.base[0] for t in kept] == [0.0, 1.9]  # trunk 1 was post 0; trunk 3 ties with post 2: a post
     assert [t.id for t in kept] == [0, 1]  # numbered along the side again
+    assert [t.post_frames for t in kept] == [0, 3]  # the frames that called trunk 2 a post stay with it
     feet = [p.place[0] - 1.5 * 0.02 / np.hypot(0.02, 1.0) * (p.place[0] < 1) for p in kept_posts]
     assert feet == pytest.approx([0.96, 2.97, 4.3]) and [p.id for p in kept_posts] == [0, 1, 2]
     assert len(said) == 3 and "trunk 1 is post 0" in said[0] and "post 1 is trunk 2" in said[1]

@@ -114,3 +114,20 @@ def test_a_front_only_and_a_back_only_trunk_at_one_place_are_one_tree():
     assert set(j.per_side) == {"front", "back"} and j.position == (1.01, 0.0, -0.14)
     assert abs(j.trunk_diameter_m - 0.05) < 1e-12 and j.flags == (PAIRED_AFTER_MERGE,)
     assert out[2].flags == ("seen_from_front_only",)
+
+
+def test_a_one_sided_trunk_the_other_side_saw_as_a_post_is_that_post_by_the_frames_of_both_sides():
+    """A row-end post a trunk in 18 front frames and a post in 12 more, a post in 13 back frames: 25 against
+    18, a post. The same trunk without its own side's post frames, or with the post elsewhere, stays a trunk;
+    a tie goes to the post."""
+    from orchard_mapping.core.trees import other_sides_post
+
+    up = np.array([0.0, 0.0, 1.0])
+    foot = np.array([0.88, 0.55, 1.26])
+    post = (np.array([0.86, 0.53, 2.2]), 0.045, 13)  # its place half way up what its views saw
+    assert other_sides_post(foot, 0.05, 18, 12, [post], up) == 13
+    assert other_sides_post(foot, 0.05, 18, 0, [post], up) is None  # 13 < 18
+    assert other_sides_post(foot, 0.05, 18, 5, [post], up) == 13  # 18 = 18: a post
+    far = (post[0] + [0.25, 0.0, 0.0], 0.045, 40)  # 25 cm along the row: the next tree's post, not this
+    assert other_sides_post(foot, 0.05, 18, 12, [far], up) is None
+    assert other_sides_post(foot, 0.05, 18, 12, [], up) is None
