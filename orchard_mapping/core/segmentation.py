@@ -44,12 +44,10 @@ __all__ = [
     "row_line_mask",
     "shrink_and_expand_pair",
     "shrink_and_expand_segmentation",
-    "waist_cuts",
 ]
 
 EXPAND_SUBSTEPS = 4
 WIRE_KNOT_M = 0.25  # m along the row between the knots of a wire's fitted line (a wire sags a few cm over metres)
-WAIST_MIN_POINTS = 5  # a slice across the row with fewer points is a gap between crowns (waist_cuts)
 _UP = np.array([0.0, 0.0, 1.0])  # default up: map frame z
 _NN_SAMPLE = 4000  # points whose nearest-neighbour distance estimates the median spacing (stable to ~1 %)
 _OFFSETS = np.array([(i, j, k) for i in (-1, 0, 1) for j in (-1, 0, 1) for k in (-1, 0, 1) if (i, j, k) != (0, 0, 0)])
@@ -103,59 +101,17 @@ def _check(points: np.ndarray, trunk_positions: np.ndarray) -> tuple[np.ndarray,
     return pts, tr
 
 
-def waist_cuts(points: np.ndarray, trunk_positions: np.ndarray, row_direction: np.ndarray, *,
-               up: np.ndarray = _UP, window: float, bin_m: float = 0.02, smooth_bins: int = 1) -> np.ndarray:
-    """Where to cut between each pair of neighbouring trunks (T-1,), m along the row axis (row_axes), in the
-    trunks' order along the row: the waist of the pair's canopy, the slice across the row (bin_m thick) of
-    least extent (across x up, 2nd to 98th percentile of its points; a slice of under WAIST_MIN_POINTS is
-    empty), smoothed over smooth_bins either side, within `window` x the gap either side of the midpoint.
-    Two convex crowns that touch or interlock are narrowest where their outlines cross, which is where a plane
-    splits them best: a larger crown pushes that point towards its smaller neighbour, a crown off its trunk
-    (a leaning leader) takes its place with it. window 0 gives the midpoints."""
-    pts, tr = _check(points, trunk_positions)
-    if not 0.0 <= window < 0.5:
-        raise SegmentationError(f"the waist window must be in [0, 0.5) of the gap, got {window!r}")
-    q = pts @ row_axes(row_direction, up).T  # (N, 3) along, across, up
-    s_t = np.sort(tr @ row_axes(row_direction, up)[0])  # (T,)
-    mids = 0.5 * (s_t[1:] + s_t[:-1])  # (T-1,)
-    cuts = mids.copy()
-    if window == 0.0:
-        return cuts
-    order = np.argsort(q[:, 0], kind="stable")
-    q = q[order]
-    for k, (a, b) in enumerate(zip(s_t[:-1], s_t[1:], strict=True)):
-        edges = np.arange(mids[k] - window * (b - a), mids[k] + window * (b - a) + bin_m, bin_m)  # (B + 1,)
-        if len(edges) < 3:
-            continue
-        at = np.searchsorted(q[:, 0], edges)  # (B + 1,) each slice's points: q[at[i]:at[i + 1]]
-        extent = np.zeros(len(edges) - 1)  # (B,) m^2
-        for i in range(len(extent)):
-            sl = q[at[i]:at[i + 1], 1:]
-            if len(sl) >= WAIST_MIN_POINTS:
-                lo, hi = np.percentile(sl, [2.0, 98.0], axis=0)
-                extent[i] = float(np.prod(hi - lo))
-        if smooth_bins > 0:
-            extent = np.convolve(np.pad(extent, smooth_bins, mode="edge"), np.ones(2 * smooth_bins + 1), "valid")
-        centres = 0.5 * (edges[:-1] + edges[1:])
-        least = np.flatnonzero(extent == extent.min())
-        cuts[k] = centres[least[np.argmin(np.abs(centres[least] - mids[k]))]]  # ties: the one nearest the midpoint
-    return cuts
-
-
 def cutting_plane_segmentation(points: np.ndarray, trunk_positions: np.ndarray, row_direction: np.ndarray, *,
                                up: np.ndarray = _UP, max_reach_m: float = np.inf,
-                               max_lateral_m: float = np.inf, cuts: np.ndarray | None = None) -> np.ndarray:
+                               max_lateral_m: float = np.inf) -> np.ndarray:
     """Tree index (N,) of each point (N, 3): the trunk (T, 3) whose cell between the planes half way to its
-    neighbours (or at `cuts` (T-1,), m along the row axis in the trunks' order along the row: waist_cuts)
-    holds it; the planes are perpendicular to the row track. -1 for points further than max_reach_m beyond
-    the end trunks along the row or max_lateral_m across it from their trunk."""
+    neighbours holds it; the planes are perpendicular to the row track. -1 for points further than
+    max_reach_m beyond the end trunks along the row or max_lateral_m across it from their trunk."""
     pts, tr = _check(points, trunk_positions)
     axes = row_axes(row_direction, up)
     s, s_t = pts @ axes[0], tr @ axes[0]  # (N,), (T,)
     order = np.argsort(s_t, kind="stable")
-    mids = 0.5 * (s_t[order][1:] + s_t[order][:-1]) if cuts is None else np.asarray(cuts, float)  # (T-1,)
-    if mids.shape != (len(tr) - 1,):
-        raise SegmentationError(f"cuts must be (T-1,) = ({len(tr) - 1},), got {mids.shape}")
+    mids = 0.5 * (s_t[order][1:] + s_t[order][:-1])  # (T-1,)
     tree = order[np.searchsorted(mids, s)]  # (N,)
     off = (s < s_t[order[0]] - max_reach_m) | (s > s_t[order[-1]] + max_reach_m)
     off |= np.abs(pts @ axes[1] - tr[tree] @ axes[1]) > max_lateral_m
@@ -408,8 +364,9 @@ def row_line_mask(points: np.ndarray, height: np.ndarray, *, min_height_m: float
         out[cand] = in_zone
         return out
     # Inside the leaves the zone's 6 cm block holds leaves round the hidden wire too: there the wire is the line
-    # through its shown stretches (per wire: a connected zone), and a point is the wire's within tube_factor x
-    # the shown points' own 90th-percentile distance from that line (their noise), at least a cell's half.
+    # through its shown stretches (per wire: a connected zone; medians in knots WIRE_KNOT_M apart), and a point
+    # is the wire's within tube_factor x twice the shown points' median distance from that line (~2.4 sd of
+    # their noise), at least half a cell.
     on_shown = shown[ijk[:, 0], ijk[:, 1], ijk[:, 2]]  # (C,)
     wire_of, _ = ndimage.label(zone, structure=np.ones((3, 3, 3)))
     lab = wire_of[ijk[:, 0], ijk[:, 1], ijk[:, 2]]  # (C,) 0 outside every zone
@@ -433,7 +390,9 @@ def row_line_mask(points: np.ndarray, height: np.ndarray, *, min_height_m: float
             line = np.column_stack([np.interp(px, kx, kyz[:, 0]), np.interp(px, kx, kyz[:, 1])])
             return np.linalg.norm(pyz - line, axis=1)
 
-        tube = max(0.5 * cell_m, tube_factor * float(np.percentile(off_line(x, yz), 90)))
+        # the noise from the median distance (leaves beside a wire's shown stretch can pass as shown cells
+        # where their own ring is empty further along: a minority, which a high percentile would follow)
+        tube = max(0.5 * cell_m, tube_factor * 2.0 * float(np.median(off_line(x, yz))))
         keep[mine] |= off_line(p[mine, 0], p[mine, 1:]) <= tube
     out[cand] = in_zone & keep
     return out

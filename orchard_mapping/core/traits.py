@@ -27,7 +27,6 @@ from orchard_mapping.core.segmentation import (
     row_axes,
     row_line_mask,
     shrink_and_expand_segmentation,
-    waist_cuts,
 )
 from orchard_mapping.errors import OrchardMappingError
 
@@ -101,9 +100,6 @@ class TraitsParams:
     # volume too (core.canopy.mirrored_share; 0: off): where crowns interlock each tree's alpha shape holds the
     # shared leaves, which a split of the points gives to one tree only.
     share_reach_m: float = 0.05
-    # cutting planes: each may move to the pair's waist (segmentation.waist_cuts) within this share of the gap
-    # either side of the midpoint (0: the midpoints)
-    cut_window: float = 0.0
 
     def __post_init__(self) -> None:
         for name in ("alpha_m", "grid_min_m", "body_cell_m"):
@@ -115,8 +111,6 @@ class TraitsParams:
                 raise TraitsError(f"traits.{name} must be >= 0, got {getattr(self, name)!r}")
         if self.height_min_support < 0 or self.close_voxels < 0:
             raise TraitsError("traits.height_min_support and traits.close_voxels must be >= 0")
-        if not 0.0 <= self.cut_window < 0.5:
-            raise TraitsError(f"traits.cut_window must be in [0, 0.5), got {self.cut_window!r}")
         if not 0.0 <= self.min_region_fraction < 1.0:
             raise TraitsError(f"traits.min_region_fraction must be in [0, 1), got {self.min_region_fraction!r}")
         if self.segmentation not in ("shrink_and_expand", "cutting_planes"):
@@ -188,9 +182,7 @@ def measure_row(points: np.ndarray, trunk_positions: np.ndarray, ground_points: 
         rank = np.empty(len(tr), int)
         rank[seg.order] = np.arange(len(tr))
     else:
-        cuts = waist_cuts(cen[keep], tr, row_direction, up=up, window=params.cut_window) \
-            if params.cut_window > 0 and len(tr) > 1 else None
-        tree_v[keep] = cutting_plane_segmentation(cen[keep], tr, row_direction, up=up, cuts=cuts,
+        tree_v[keep] = cutting_plane_segmentation(cen[keep], tr, row_direction, up=up,
                                                   max_reach_m=params.max_reach_m, max_lateral_m=params.max_lateral_m)
         rank = np.arange(len(tr))
     kind_v = np.where(ground, KIND_GROUND, np.where(post, KIND_POST, np.where(

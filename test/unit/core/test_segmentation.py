@@ -9,7 +9,6 @@ from orchard_mapping.core.segmentation import (
     cutting_plane_segmentation,
     ground_and_post_masks,
     shrink_and_expand_segmentation,
-    waist_cuts,
 )
 from orchard_mapping.sim.point_rows import KIND_GROUND, KIND_POST, KIND_TREE, synthetic_row
 
@@ -52,37 +51,6 @@ def test_separate_crowns_both_methods_near_perfect(seed):
     assert np.mean(shrink_and_expand_segmentation(p, r.trunk_positions, ROW).tree == t) >= 0.99
 
 
-@pytest.mark.parametrize("seed", [0, 1, 2])
-def test_crowns_of_unequal_size_are_cut_at_their_waist(seed):
-    """Four touching crowns 0.9 m apart, 0.4-0.65 m along the row: the midpoint gives the larger crown's edge
-    to its smaller neighbour; the waist (the narrowest slice across the row near the midpoint) is where the
-    outlines cross (seeds 0-2: 97.6 / 96.7 / 98.2 % -> 99.3 / 99.4 / 99.6 %; seeds 0-5 at 0.7 and 0.9 m: mean
-    96.8 -> 98.1 %)."""
-    r = synthetic_row(seed, n_trees=4, spacing_m=0.9, radius_along_m=(0.4, 0.65))
-    m = r.kind == KIND_TREE
-    p, t = r.points[m], r.tree[m]
-    mid = np.mean(cutting_plane_segmentation(p, r.trunk_positions, ROW) == t)
-    cuts = waist_cuts(p, r.trunk_positions, ROW, window=0.25)
-    waist = np.mean(cutting_plane_segmentation(p, r.trunk_positions, ROW, cuts=cuts) == t)
-    assert waist >= 0.985 and waist > mid + 0.01, (mid, waist)
-    s_t = np.sort(r.trunk_positions[:, 0])
-    gap = np.diff(s_t)
-    mids = 0.5 * (s_t[1:] + s_t[:-1])
-    assert np.all(np.abs(cuts - mids) <= 0.25 * gap + 0.01)  # within the window
-    assert np.array_equal(waist_cuts(p, r.trunk_positions, ROW, window=0.0), mids)
-
-
-def test_crowns_apart_are_cut_in_the_gap():
-    """A gap between two crowns: the cut falls in it, whatever the window."""
-    r = synthetic_row(0, n_trees=2, spacing_m=1.4, radius_along_m=(0.4, 0.5))
-    m = r.kind == KIND_TREE
-    p, t = r.points[m], r.tree[m]
-    s = p[:, 0]
-    first = t == int(np.argmin(r.trunk_positions[:, 0]))
-    cut = waist_cuts(p, r.trunk_positions, ROW, window=0.4)[0]
-    assert s[first].max() < cut < s[~first].min()
-
-
 def test_ground_and_posts_are_masked_on_a_slope():
     r = synthetic_row(0, n_trees=3, spacing_m=0.9, posts_between=(0,), slope_deg=(4.0, 2.0))
     cut = cutting_plane_segmentation(r.points, r.trunk_positions, ROW)
@@ -101,19 +69,25 @@ def _wire(rng, x0, x1, height, across, spacing=0.01, noise=0.002):
 @pytest.mark.parametrize("seed", [0, 1, 2])
 def test_a_trellis_wire_is_found_where_it_shows_and_followed_where_leaves_hide_it(seed):
     """A wire at 1.5 m seen unbroken between crowns and only in stubs of 10 cm inside them is a wire over its
-    whole length; the crowns' leaves and the flat ground are not."""
+    whole length; the crowns' leaves and the flat ground are not, nor three clumps of leaves 3 cm from the hidden
+    wire (the 6 cm block round it took 73-100 % of them, seeds 0-5; the tube round its line 0-1.7 %)."""
     from orchard_mapping.core.segmentation import row_line_mask
 
     rng = np.random.default_rng(seed)
     r = synthetic_row(seed, n_trees=3, spacing_m=1.4, radius_along_m=(0.4, 0.5))
     open_span = _wire(rng, 0.5, 0.95, 1.5, 0.0)  # between crowns 0 and 1 (trunks at 0, 1.4)
     stubs = np.concatenate([_wire(rng, x, x + 0.1, 1.5, 0.0) for x in (1.1, 1.35, 1.6)])  # inside crown 1
-    pts = np.concatenate([r.points, open_span, stubs])
+    ang = rng.uniform(0, 2 * np.pi, 3)
+    clumps = np.concatenate([np.array([x, 0.03 * np.cos(a), 1.5 + 0.03 * np.sin(a)]) + rng.normal(0, 0.004, (40, 3))
+                             for x, a in zip((1.22, 1.47, 1.72), ang, strict=True)])
+    pts = np.concatenate([r.points, open_span, stubs, clumps])
     h = np.concatenate([np.sum((r.points - r.ground_points[0]) * r.ground_normals[0], axis=1),
-                        np.full(len(open_span) + len(stubs), 1.5)])
+                        np.full(len(open_span) + len(stubs) + len(clumps), 1.5)])
     wire = row_line_mask(pts, h, min_height_m=0.3)
-    n = len(r.points)
-    assert wire[n:n + len(open_span)].mean() > 0.95
-    assert wire[n + len(open_span):].mean() > 0.9  # the stubs: within reach of the open span
+    n, m = len(r.points), len(r.points) + len(open_span)
+    assert wire[n:m].mean() > 0.95
+    assert wire[m:m + len(stubs)].mean() > 0.9  # the stubs: within reach of the open span
+    assert wire[m + len(stubs):].mean() < 0.05  # leaves beside the hidden wire
+    assert row_line_mask(pts, h, min_height_m=0.3, tube_factor=0.0)[m + len(stubs):].mean() > 0.5  # the block's
     assert wire[:n][r.kind == KIND_TREE].mean() < 0.01  # leaves are not lines along the row
     assert not wire[:n][r.kind == KIND_GROUND].any()  # below min_height_m
