@@ -2,6 +2,7 @@
 
     .venv/bin/python benchmarks/fruit_rows.py [--rows standard:51] [--sources masks model] [--trees 10]
         [--workdir DIR (default: the system temporary folder/traits_rows)] [--json out.json]
+        [--sim-set fruit.red_fraction=0 ...]  (scenario overrides of every row: a colour mix)
 
 Per row it reuses (or makes, as benchmarks/traits_rows.py does) each side's reconstruction, then runs the fruit
 stage on the side's keyframes (pipeline.fruit.FruitTap over the bag's keyframe images, with the side map's
@@ -22,6 +23,7 @@ import tempfile
 from pathlib import Path
 
 import numpy as np
+import yaml
 
 from orchard_mapping.config import load_config
 from orchard_mapping.core.fruit import inclusion_exclusion_count
@@ -53,6 +55,8 @@ def main() -> None:
     ap.add_argument("--trees", type=int, default=10)
     ap.add_argument("--workdir", type=Path, default=Path(tempfile.gettempdir()) / "traits_rows")
     ap.add_argument("--json", type=Path, default=None)
+    ap.add_argument("--sim-set", action="append", default=[], metavar="KEY=VALUE",
+                    help="scenario override for every row, e.g. fruit.red_fraction=0 (green fruit only)")
     a = ap.parse_args()
     rows = []
     print("| row | source | visible / all | front | back | naive sum | incl.-excl. | ours | ours vs visible % "
@@ -60,7 +64,10 @@ def main() -> None:
     print("|---|---|---|---|---|---|---|---|---|---|---|---|---|---|")
     for spec in a.rows:
         scenario, seed = spec.split(":")
-        sim, maps = side_maps(a.workdir / f"{scenario}_{seed}_{a.trees}trees", scenario, int(seed), a.trees, True)
+        sim_sets = dict(kv.split("=", 1) for kv in a.sim_set)
+        tag = "".join(f"_{k.split('.')[-1]}{v}" for k, v in sim_sets.items())  # e.g. _red_fraction0.0
+        sim, maps = side_maps(a.workdir / f"{scenario}_{seed}_{a.trees}trees{tag}", scenario, int(seed), a.trees,
+                              True, {k: yaml.safe_load(v) for k, v in sim_sets.items()})
         gt = load_ground_truth(sim / "ground_truth.json")
         visible = sum(t.fruit_visible["either"] for t in gt.trees)
         total = sum(t.fruit_count for t in gt.trees)

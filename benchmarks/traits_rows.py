@@ -33,10 +33,13 @@ from orchard_mapping.sim.scenario import load_scenario
 from orchard_mapping.sim.simulate import simulate
 
 
-def side_maps(row: Path, scenario: str, seed: int, trees: int, reuse: bool) -> tuple[Path, dict]:
+def side_maps(row: Path, scenario: str, seed: int, trees: int, reuse: bool,
+              sim_sets: dict | None = None) -> tuple[Path, dict]:
+    """The row simulated (scenario, seed, trees, the scenario overrides sim_sets) and each side reconstructed,
+    in `row`; with reuse, what is there already is read back."""
     sim = row / "sim"
     if not (reuse and (sim / "ground_truth.json").is_file()):
-        simulate(load_scenario(scenario, {"row.n_trees": trees}), seed, sim)
+        simulate(load_scenario(scenario, {"row.n_trees": trees, **(sim_sets or {})}), seed, sim)
     cfg = load_config()
     maps = {}
     for side, seq in open_sides(sim / "front", sim / "back", cfg).items():

@@ -84,7 +84,7 @@ class FruitParams:
     match_factor: float = 1.0  # a front and a back fruit are one within this x their mean radius
     # a side's fruit smaller than this x the median diameter of its well-seen fruit (seen in at least the median
     # number of keyframes) are dropped (0: none). The pixel model's false fruit are mostly pieces of fruit
-    # seen between leaves and red specks, median 25 mm across against 40 mm. Chosen on the 10-tree standard
+    # seen between leaves and red specks, median 50 mm across against 82 mm. Chosen on the 10-tree standard
     # row of seed 21, pixel model: 0 / 0.6 / 0.7 / 0.8 gave row counts +61 / +24 / +5.0 / -7.8 % of the fruit
     # visible; the simulator's masks +4.3 % at 0 and +2.5 % at 0.7
     min_size_of_median: float = 0.7
