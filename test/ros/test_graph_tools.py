@@ -192,7 +192,11 @@ def test_a_killed_recorder_is_restarted_and_carries_on_its_bag(small_bag, tmp_pa
         killed["at"] = time.time()  # the recorder's log times are the system clock's
         while "carried on the bag" not in log.getvalue() and time.monotonic() < deadline:
             time.sleep(0.1)
-        time.sleep(3.0)  # the new recorder records on
+        # the new recorder records on: until it has put half a loop of the bag more on disk (not a fixed wait,
+        # which a loaded machine outlasted: nothing recorded after the kill)
+        carried, deadline = written(), time.monotonic() + 120
+        while written() < carried + 300_000 and time.monotonic() < deadline:
+            time.sleep(0.1)
         sup.stop()
 
     threading.Thread(target=kill_then_stop, daemon=True).start()
