@@ -15,7 +15,7 @@ an 8-tree row): keyframes cleaned 0.5 m behind the camera in 0.5 m batches (the 
 What may grow with the row, per metre of one side (640x480, 10 Hz, ~17 keyframes per metre): keyframe
 features (~0.6 MB), landmarks and observations (~0.3 MB), the fused cloud (~40 k points, ~0.6 MB, with a
 few float64 copies while trunks are modelled) and cropped trunk views (~0.7 MB): ~4 MB per metre, ~40 MB
-for the 9.2 m the 8-tree row adds. Measured: +18-19 MB; the code before the streaming core (one volume for
+for the 9.2 m the 8-tree row adds. Measured: +18 to +25 MB; the code before the streaming core (one volume for
 the whole side, whole-frame views, one global BA): +257 MB.
 """
 
