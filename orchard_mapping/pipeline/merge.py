@@ -259,8 +259,9 @@ def _set_aside_one_sided(trees: list[ResultTree], merged: MergeOutcome, sides: d
     and with OFF_ROW_LINE flagged on one-sided ones off the row's line (the traits stage leaves them out)."""
     if len(trees) < 2:
         return trees
-    up = side_up_direction(np.concatenate(list(map_poses(merged, sides).values())))
-    trees = _posts_of_the_other_side_out(trees, merged, sides, up)
+    poses = map_poses(merged, sides)
+    up = side_up_direction(np.concatenate(list(poses.values())))
+    trees = _posts_of_the_other_side_out(trees, sides, poses, up)
     if len(trees) < 2:
         return trees
     two = np.array([len(t.per_side or {}) == 2 for t in trees])
@@ -276,7 +277,13 @@ def _set_aside_one_sided(trees: list[ResultTree], merged: MergeOutcome, sides: d
     return join_opposite_one_sided(out, up)
 
 
-def _posts_of_the_other_side_out(trees: list[ResultTree], merged: MergeOutcome, sides: dict[str, SideMap],
+def side_posts_in_map(sides: dict[str, SideMap], poses: dict[str, np.ndarray]) -> dict[str, np.ndarray]:
+    """Each side's post places (P, 3), carried into map with its keyframes (poses: map_poses), as its cloud is."""
+    return {side: move_with_keyframes(np.array([p.place for p in sm.posts]).reshape(-1, 3), sm.keyframe_poses,
+                                      poses[side]) for side, sm in sides.items()}
+
+
+def _posts_of_the_other_side_out(trees: list[ResultTree], sides: dict[str, SideMap], poses: dict[str, np.ndarray],
                                  up: np.ndarray) -> list[ResultTree]:
     """The trees less the one-sided ones that are a post the other side modelled, by the frames of both sides:
     a trunk seen from one side only, where the other side saw a post, is that post when the frames that called
@@ -284,9 +291,9 @@ def _posts_of_the_other_side_out(trees: list[ResultTree], merged: MergeOutcome, 
     least those that called it a trunk, a tie going to the post as within a side
     (core.posts.separate_trunks_from_posts). Dense row seed 41: a row-end post was a trunk in 18 front frames,
     a post in 12 front and 13 back ones; as a tree it took 80 % of its neighbour's crown."""
-    T_fb = merged.T_front_back
-    posts = {side: [(T[:3, :3] @ p.place + T[:3, 3], p.radius_m, len(p.observations)) for p in sides[side].posts]
-             for side, T in (("front", np.eye(4)), ("back", T_fb))}
+    places = side_posts_in_map(sides, poses)
+    posts = {side: [(q, p.radius_m, len(p.observations)) for q, p in zip(places[side], sm.posts, strict=True)]
+             for side, sm in sides.items()}
     out = []
     for t in trees:
         lm = None

@@ -18,7 +18,6 @@ from dataclasses import dataclass, field, replace
 import numpy as np
 
 from orchard_mapping.config import OrchardConfig
-from orchard_mapping.core.geometry import move_with_keyframes
 from orchard_mapping.core.segmentation import row_axes
 from orchard_mapping.core.sidemap import SideMap
 from orchard_mapping.core.traits import KIND_GROUND, KIND_POST, KIND_TREE, KIND_WIRE, RowTraits, measure_row
@@ -34,6 +33,7 @@ from orchard_mapping.pipeline.merge import (
     map_poses,
     merge_to_trees,
     ray_in_map,
+    side_posts_in_map,
 )
 from orchard_mapping.pipeline.trunks import TrunkWorker
 
@@ -133,10 +133,8 @@ def _split_points(trees: list[ResultTree], sides: dict[str, SideMap], poses: dic
 
 def _posts_in_map(sides: dict[str, SideMap], poses: dict[str, np.ndarray]) -> tuple[np.ndarray, float]:
     """((P, 3) a point on each post's axis in map, the widest post radius m) of the posts both sides modelled."""
-    places = [move_with_keyframes(np.array([p.place for p in sm.posts]).reshape(-1, 3), sm.keyframe_poses,
-                                  poses[side]) for side, sm in sides.items()]
     radii = [p.radius_m for sm in sides.values() for p in sm.posts]
-    return np.concatenate(places).reshape(-1, 3), float(max(radii, default=0.0))
+    return np.concatenate(list(side_posts_in_map(sides, poses).values())).reshape(-1, 3), float(max(radii, default=0.0))
 
 
 def measure_trees(merged: MergeOutcome, sides: dict[str, SideMap], clouds: dict[str, np.ndarray],
