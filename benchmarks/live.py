@@ -11,7 +11,9 @@ received them) with the side merger's own seconds, and the whole replay's wall t
 
 Usage:
   python benchmarks/live.py [--trees 2] [--rates 1 2] [--seed 0] [--workdir /tmp/live_bench] [--sim DIR]
-        [--masks] [--json out.json]
+        [--masks] [--repeat 1] [--json out.json]
+--repeat N replays each rate N times and adds a row of medians (the JSON keeps every run, with each side's
+finishing stages in seconds).
 --masks takes trunks from the simulator's masks (trunks.source=masks) instead of the shipped detector.
 """
 
@@ -26,6 +28,7 @@ import tempfile
 import time
 from pathlib import Path
 
+import numpy as np
 import yaml
 from rich.console import Console
 from rich.table import Table
@@ -69,7 +72,7 @@ def replay(sim: Path, rate: float, work: Path, masks: bool) -> dict:
             "side_map_latency_s": status["side_map_latency_s"], "recording_s": duration, "wall_s": wall,
             "second_end_to_trees_s": trees[-1] - side_end[-1] if trees and side_end else None,
             "merge_s": merger["seconds"][-1] if merger["seconds"] else None,
-            "errors": status["errors"]}
+            "finish_stages_s": status.get("finish_stages_s", {}), "errors": status["errors"]}
 
 
 def _f(v: float | None) -> str:
@@ -84,13 +87,14 @@ def main() -> None:
     ap.add_argument("--workdir", type=Path, default=Path(tempfile.gettempdir()) / "live_bench")
     ap.add_argument("--sim", type=Path, help="reuse a simulated row (folder with front/, back/)")
     ap.add_argument("--masks", action="store_true")
+    ap.add_argument("--repeat", type=int, default=1)
     ap.add_argument("--json", type=Path)
     args = ap.parse_args()
     args.workdir.mkdir(parents=True, exist_ok=True)
     sim = args.sim or simulate_row(args.trees, 15.0, args.seed,
                                    args.workdir / f"standard_{args.trees}trees_seed{args.seed}",
                                    ["masks_every=1"] if args.masks else [])
-    rows = [replay(sim, r, args.workdir, args.masks) for r in args.rates]
+    rows = [replay(sim, r, args.workdir, args.masks) for r in args.rates for _ in range(args.repeat)]
     t = Table(title=f"node graph on a replayed {sim.name} row (orchard-map launch), 2 cores")
     for col in ("rate", "colour sent", "received", "lost", "lost, reported by node", "of which gaps seen", "tracked",
                 "side end -> map front s", "side end -> map back s", "2nd side end -> trees s", "merge s",
@@ -102,6 +106,17 @@ def main() -> None:
                   str(r["lost_reported"]), str(r["gaps_seen"]), str(r["tracked"]), f"{lat.get('front', float('nan')):.1f}",
                   f"{lat.get('back', float('nan')):.1f}", _f(r["second_end_to_trees_s"]), _f(r["merge_s"]),
                   f"{r['recording_s']:.1f}", f"{r['wall_s']:.1f}")
+    if args.repeat > 1:
+        for rate in args.rates:
+            runs = [r for r in rows if r["rate"] == rate]
+
+            def med(get, runs=runs) -> str:
+                vals = [v for v in (get(r) for r in runs) if v is not None]
+                return f"{float(np.median(vals)):.1f}" if vals else "n/a"
+            t.add_row(f"{rate:g}x median of {len(runs)}", "", "", med(lambda r: r["lost"]), "", "", "",
+                      med(lambda r: r["side_map_latency_s"].get("front")),
+                      med(lambda r: r["side_map_latency_s"].get("back")), med(lambda r: r["second_end_to_trees_s"]),
+                      med(lambda r: r["merge_s"]), "", med(lambda r: r["wall_s"]))
     Console(width=200).print(t)
     if args.json:
         args.json.write_text(portable_json(rows, indent=1))

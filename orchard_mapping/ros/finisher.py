@@ -7,7 +7,8 @@ node's subscriptions stopped taking frames and DDS dropped 16-22 of the next sid
 child process it shares only the cores, at a lower priority (`CHILD_NICE`), so tracking the camera
 comes first.
 
-The child is started with `spawn` (the node's DDS threads must not be forked) and gets the side's
+The child is started with `spawn` (the node's DDS threads must not be forked) as its side begins
+(`FinishingProcess`: it imports the pipeline while the camera is tracked) and, once the side ends, gets the side's
 handover (pipeline.SideHandover: the front end's result, the spooled keyframe images' folder, the
 configuration, and the trunk detections made beside the front end in the node's process: by the
 trunk_detector node or the configured detector, pipeline.EarlyDetections). The side map comes back whole
@@ -33,7 +34,7 @@ from orchard_mapping.errors import OrchardMappingError
 from orchard_mapping.io.sidemap_codec import encode_side_geometry
 from orchard_mapping.pipeline import SideSession, Timings, finish_side
 
-__all__ = ["CHILD_NICE", "GeometryInfo", "SideFinishError", "finish_in_child"]
+__all__ = ["CHILD_NICE", "FinishingProcess", "GeometryInfo", "SideFinishError", "finish_in_child"]
 
 # What the parent is told of a side's geometry beside its encoded bytes: side, frame_id, stamp (s),
 # keyframes, cloud_points
@@ -53,11 +54,19 @@ class SideFinishError(OrchardMappingError):
         self.typed = typed  # the child raised an OrchardMappingError (bad input), not a bug
 
 
-def _child(job, conn, ask_grounds: bool) -> None:
+def _child(conn) -> None:
+    """The finishing process: imports done (spawn imports this module), it waits for its side's handover."""
     try:
         os.nice(CHILD_NICE)
     except OSError:
         pass
+    try:
+        kind, payload = conn.recv()
+    except (EOFError, KeyboardInterrupt):  # closed unused (the node stopped before another side ended)
+        return
+    if kind != "job":
+        return
+    job, ask_grounds = payload
 
     def grounds_from_parent(geometry: SideGeometry) -> "list[TrunkGround] | None":
         info = {"side": geometry.side, "frame_id": geometry.frame_id, "stamp": geometry.stamp,
@@ -80,38 +89,67 @@ def _child(job, conn, ask_grounds: bool) -> None:
         conn.close()
 
 
-def finish_in_child(session: SideSession, timings: Timings, grounds: AskGrounds | None = None) -> SideMap:
-    """session.finish(timings) run in a child process. Lets go of the keyframe images. SideFinishError when
-    the child failed or died. grounds: asked for the trunks' grounds once the side is fused (the module
-    docstring); None: the child fits them."""
-    ctx = mp.get_context("spawn")
-    parent, child = ctx.Pipe()
-    proc = ctx.Process(target=_child, args=(session.handover(), child, grounds is not None),
-                       name=f"finish-{session.side}", daemon=True)
-    try:
-        proc.start()
+class FinishingProcess:
+    """A child process that finishes one side, started before that side ends.
+
+    Spawning it and importing the pipeline (GTSAM, Open3D, onnxruntime) took about 5 s of a side's latency
+    when the process was started at the side's end; the live node starts the next one as soon as a side's
+    finishing begins, while the camera is still being tracked, so the side's end waits only for the work."""
+
+    def __init__(self, name: str = "finish") -> None:
+        ctx = mp.get_context("spawn")
+        self._conn, child = ctx.Pipe()
+        self._proc = ctx.Process(target=_child, args=(child,), name=name, daemon=True)
+        self._proc.start()
         child.close()
-        while True:
+        self._used = False
+
+    def finish(self, session: SideSession, timings: Timings, grounds: AskGrounds | None = None) -> SideMap:
+        """session.finish(timings) run in this process (once). Lets go of the keyframe images and stops the
+        process. SideFinishError when the child failed or died."""
+        if self._used:
+            raise RuntimeError("a FinishingProcess finishes one side")
+        self._used = True
+        parent, proc = self._conn, self._proc
+        try:
             try:
-                kind, payload = parent.recv()
-            except EOFError:
-                proc.join(timeout=10)
-                raise SideFinishError(f"{session.side} side: the process finishing it died "
-                                      f"(exit code {proc.exitcode})", typed=False) from None
-            if kind == "geometry" and grounds is not None:
-                parent.send(("grounds", grounds(*payload)))
-            elif kind == "done":
-                sm, stages = payload
-                for stage, seconds in stages.items():
-                    timings.add(stage, seconds)
-                return sm
-            else:
-                message, detail, typed = payload
-                raise SideFinishError(message, detail, typed)
-    finally:
-        parent.close()
-        proc.join(timeout=30)
-        if proc.is_alive():
-            proc.kill()
-            proc.join()
-        session.images.close()
+                parent.send(("job", (session.handover(), grounds is not None)))
+            except (BrokenPipeError, EOFError, OSError):
+                raise SideFinishError(f"{session.side} side: the process to finish it had died (exit code "
+                                      f"{proc.exitcode})", typed=False) from None
+            while True:
+                try:
+                    kind, payload = parent.recv()
+                except EOFError:
+                    proc.join(timeout=10)
+                    raise SideFinishError(f"{session.side} side: the process finishing it died "
+                                          f"(exit code {proc.exitcode})", typed=False) from None
+                if kind == "geometry" and grounds is not None:
+                    parent.send(("grounds", grounds(*payload)))
+                elif kind == "done":
+                    sm, stages = payload
+                    for stage, seconds in stages.items():
+                        timings.add(stage, seconds)
+                    return sm
+                else:
+                    message, detail, typed = payload
+                    raise SideFinishError(message, detail, typed)
+        finally:
+            self.close()
+            session.images.close()
+
+    def close(self) -> None:
+        """Stop the process (at once when it waits for a side; at most 30 s when it is finishing one)."""
+        self._conn.close()
+        self._proc.join(timeout=30)
+        if self._proc.is_alive():
+            self._proc.kill()
+            self._proc.join()
+
+
+def finish_in_child(session: SideSession, timings: Timings, grounds: AskGrounds | None = None,
+                    process: FinishingProcess | None = None) -> SideMap:
+    """session.finish(timings) run in a child process: `process`, started earlier, or else one started now.
+    Lets go of the keyframe images. SideFinishError when the child failed or died. grounds: asked for the
+    trunks' grounds once the side is fused (the module docstring); None: the child fits them."""
+    return (process or FinishingProcess(f"finish-{session.side}")).finish(session, timings, grounds)

@@ -4,8 +4,9 @@ Per side it runs the same `SideSession` as `orchard-map run`: the front end on e
 each keyframe's images spooled to disk and, every trunks.detect_every_m, handed to the trunk detector on a
 thread of its own; when the side ends (the side topic changes or says `end`) loop
 detection, bundle adjustment, TSDF fusion, trunk cylinders and local grounds run in
-a child process (ros/finisher.py: in a thread they held the GIL for seconds and camera frames were lost)
-while the next side is already being tracked. With `ground_fitter:=node` (what `orchard-map launch` sets)
+a child process (ros/finisher.py: in a thread they held the GIL for seconds and camera frames were lost),
+started as the side began, while the next side is already being tracked; each side has its own, so a side's
+map does not wait for the one before it. With `ground_fitter:=node` (what `orchard-map launch` sets)
 the trunks' local grounds come from the `local_ground_fitter` node: once the side is fused its geometry
 goes out on `side_geometry`, and the trunk cylinders are fitted against the grounds that come back on
 `local_grounds` (core.trunks: the grounds, then the cylinders; `orchard-map run` does both in one process).
@@ -68,7 +69,7 @@ from orchard_mapping.io.sidemap_codec import (
 )
 from orchard_mapping.pipeline import SIDES, SideSession, SpooledKeyframeImages, Timings
 from orchard_mapping.ros.clouds import cloud_to_msg
-from orchard_mapping.ros.finisher import GeometryInfo, SideFinishError, finish_in_child
+from orchard_mapping.ros.finisher import FinishingProcess, GeometryInfo, SideFinishError, finish_in_child
 from orchard_mapping.ros.local_ground_fitter import geometry_topic, grounds_topic
 from orchard_mapping.ros.messages import (
     TrunkRecord,
@@ -110,6 +111,7 @@ class _Counts:
     # colour images a bag player says it sent and this node never received (all bags so far)
     lost_vs_player: int = 0
     side_map_latency_s: dict[str, float] = field(default_factory=dict)  # s, a side's end -> its map published
+    finish_stages_s: dict[str, dict[str, float]] = field(default_factory=dict)  # side -> stage -> s (pipeline.Timings)
     failed: list[str] = field(default_factory=list)  # sides whose map could not be made
     # sides whose trunks' grounds were fitted here, the local_ground_fitter node not answering (the same grounds)
     grounds_here: list[str] = field(default_factory=list)
@@ -181,6 +183,11 @@ class RGBDOdometryNode(Node):
         self.create_subscription(CameraInfo, topics.camera_info, self._on_info, camera)
         self.create_subscription(String, topics.side, self._on_side, LATCHED)
         self.create_subscription(String, PLAYER_STATUS, self._on_player, LATCHED)
+        # the process that will finish the side being tracked, started as the side begins (_prepare_finishing)
+        self._spare: FinishingProcess | None = None
+        self._spare_closed = False
+        self._spare_lock = threading.Lock()
+        self._finished_lock = threading.Lock()  # sides finished on threads of their own publish one at a time
         self._threads = [threading.Thread(target=self._track_loop, daemon=True),
                          threading.Thread(target=self._finish_loop, daemon=True)]
         for t in self._threads:
@@ -226,7 +233,8 @@ class RGBDOdometryNode(Node):
                                "missed": c.missed, "lost_vs_player": c.lost_vs_player,
                                "processed": dict(c.processed), "finished": list(c.finished),
                                "failed": list(c.failed), "grounds_here": list(c.grounds_here),
-                               "side_map_latency_s": dict(c.side_map_latency_s), "errors": list(self.errors),
+                               "side_map_latency_s": dict(c.side_map_latency_s),
+                               "finish_stages_s": dict(c.finish_stages_s), "errors": list(self.errors),
                                "detector_unanswered": {s: d.unanswered for s, d in detectors},
                                "detector_refused": {s: d.refused for s, d in detectors},
                                "detector_guard_expired": {s: d.guard_expired for s, d in detectors}})
@@ -409,8 +417,10 @@ class RGBDOdometryNode(Node):
                 self._detectors[side] = RemoteDetector(
                     self, side, cfg.frames.camera, guard_s=float(self.get_parameter("detector_guard_s").value))
             detect = self._detectors[side]
-        return SideSession(side, intr, cfg, SpooledKeyframeImages(spool), bag=f"{side} side (camera topics)",
-                           detect=detect)
+        session = SideSession(side, intr, cfg, SpooledKeyframeImages(spool), bag=f"{side} side (camera topics)",
+                              detect=detect)
+        self._prepare_finishing()
+        return session
 
     def _publish_pose(self, side: str, stamp: float, T: np.ndarray, keyframe: bool) -> None:
         if not np.isfinite(T).all():
@@ -440,17 +450,59 @@ class RGBDOdometryNode(Node):
     # -- finishing a side (worker thread)
 
     def _finish_loop(self) -> None:
-        while True:
-            item = self._finish.get()
-            if item is None:
-                return
-            session, ended = item
-            side = session.side
-            self.get_logger().info(f"{side} side ended after {session.frames} frames: bundle adjustment, fusion, "
-                                   "trunks")
-            try:
-                sm = finish_in_child(session, Timings(), self._ask_ground_fitter if self._ground_node else None)
-            except Exception as err:  # noqa: BLE001 - reported and counted; the node goes on with the next side
+        try:
+            self._finish_sides()
+        finally:
+            with self._spare_lock:
+                spare, self._spare, self._spare_closed = self._spare, None, True
+            if spare is not None:
+                spare.close()
+
+    def _prepare_finishing(self) -> None:
+        """Start the process that will finish the side now being tracked (ros/finisher.py: its start and imports
+        are then done before the side ends). Called from the tracking thread as a side begins."""
+        with self._spare_lock:
+            if self._spare is None and not self._spare_closed:
+                self._spare = FinishingProcess()
+
+    def _take_finishing(self) -> FinishingProcess | None:
+        """The process started for the side that ended (None: finish_in_child starts one)."""
+        with self._spare_lock:
+            process, self._spare = self._spare, None
+        return process
+
+    def _finish_sides(self) -> None:
+        # Each side is finished on a thread of its own, as soon as it ends: one after the other, the back side
+        # waited for the front side's finishing, which the back side's tracking slows (10-tree row at 1x: the
+        # front side's took 63 s of work beside the camera, the back side's map came 59 s after its end, 19 s
+        # of them waiting). A side that comes again (a replay looping round) waits for its earlier finishing.
+        running: dict[str, threading.Thread] = {}
+        try:
+            while True:
+                item = self._finish.get()
+                if item is None:
+                    return
+                session, ended = item
+                earlier = running.get(session.side)
+                if earlier is not None:
+                    earlier.join()
+                running[session.side] = threading.Thread(target=self._finish_side, args=(session, ended),
+                                                         name=f"finish-{session.side}", daemon=True)
+                running[session.side].start()
+        finally:
+            for t in running.values():
+                t.join()
+
+    def _finish_side(self, session: SideSession, ended: float) -> None:
+        side = session.side
+        self.get_logger().info(f"{side} side ended after {session.frames} frames: bundle adjustment, fusion, "
+                               "trunks")
+        timings = Timings()
+        try:
+            sm = finish_in_child(session, timings, self._ask_ground_fitter if self._ground_node else None,
+                                 self._take_finishing())
+        except Exception as err:  # noqa: BLE001 - reported and counted; the node goes on with the next side
+            with self._finished_lock:
                 self._error(f"{side} side: no side map: {err}" if isinstance(err, OrchardMappingError)
                             else f"{side} side: no side map: {type(err).__name__}: {err}")
                 if isinstance(err, SideFinishError) and not err.typed:
@@ -459,14 +511,19 @@ class RGBDOdometryNode(Node):
                     self.get_logger().error(traceback.format_exc())
                 self.counts.failed.append(side)
                 self._check_wanted()
-                continue
+            return
+        with self._finished_lock:
             self.side_maps[side] = sm
             self._publish_side_map(sm)
             self.counts.finished.append(side)
             self.counts.side_map_latency_s[side] = round(time.monotonic() - ended, 3)
+            self.counts.finish_stages_s[side] = {k: round(v, 3) for k, v in timings.stages.items()}
             self._publish_status()
-            self.get_logger().info(f"{side} side map published: {len(sm.keyframe_poses)} keyframes, "
-                                   f"{len(sm.cloud_points)} points, {len(sm.trunks)} trunks")
+            stages = ", ".join(f"{k.removesuffix('_' + side)} {v:.1f}" for k, v in timings.stages.items()
+                               if not k.startswith(("front_end", "trunk_detection")))
+            self.get_logger().info(f"{side} side map published {self.counts.side_map_latency_s[side]:.1f} s after "
+                                   f"the side ended: {len(sm.keyframe_poses)} keyframes, {len(sm.cloud_points)} "
+                                   f"points, {len(sm.trunks)} trunks (finishing, s: {stages})")
             self._check_wanted()
 
     # -- the trunks' grounds from the local_ground_fitter node

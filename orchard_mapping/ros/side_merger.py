@@ -28,7 +28,9 @@ from __future__ import annotations
 
 import json
 import sys
+import threading
 import time
+import traceback
 from pathlib import Path
 
 import numpy as np
@@ -45,7 +47,7 @@ from std_msgs.msg import String
 
 from orchard_mapping.core.geometry import matrix_to_quat
 from orchard_mapping.core.sidemap import SideMap
-from orchard_mapping.errors import AlignmentError
+from orchard_mapping.errors import AlignmentError, OrchardMappingError
 from orchard_mapping.io.results import staged_folder
 from orchard_mapping.io.sidemap_codec import SIDE_MAP_ENCODING, SideMapFormatError, decode_side_map
 from orchard_mapping.pipeline import (
@@ -90,6 +92,7 @@ class SideMergerNode(Node):
         self.errors: list[str] = []
         self.seconds: list[float] = []
         self._stop: int | None = None
+        self._writer: threading.Thread | None = None  # writing the last merge's files (out_dir)
         self._pubs = {
             "merge": self.create_publisher(SideMerge, "/orchard/side_merge", LATCHED),
             "cloud": self.create_publisher(PointCloud2, "/orchard/merged/cloud", LATCHED),
@@ -145,21 +148,42 @@ class SideMergerNode(Node):
             return
         self.seconds.append(time.perf_counter() - t0)
         self.merges += 1
-        out = self.get_parameter("out_dir").value
-        if out:
-            self._write(Path(out), merged, clouds, labels, trees)
         self._publish(merged, clouds, trees)
         steps = ", ".join(f"{k} {v:.2f} s" for k, v in merged.seconds.items())  # not in side_merge.json
         self.get_logger().info(f"merged ({merged.method}) on {len(merged.pairs)} trunk pairs in "
                                f"{self.seconds[-1]:.2f} s ({steps}): {len(trees)} trees")
+        out = self.get_parameter("out_dir").value
+        if out:
+            # The files after the messages: drawing and writing them (row.png, a picture per tree, trees.laz) took
+            # 7.5 s of the 17 s between the second side map and the trees on the 10-tree row. A later merge's
+            # files wait for these; the node's exit waits for the last (close).
+            if self._writer is not None:
+                self._writer.join()
+            maps = dict(self.maps)
+            self._writer = threading.Thread(target=self._write, args=(Path(out), merged, maps, clouds, labels, trees),
+                                            name="merge-files")
+            self._writer.start()
 
-    def _write(self, out: Path, merged: MergeOutcome, clouds: dict[str, np.ndarray], labels: RowLabels,
-               trees: list) -> None:
+    def close(self) -> None:
+        """Wait for the merge's files to be written (a stop meanwhile leaves the earlier set whole)."""
+        if self._writer is not None:
+            self._writer.join()
+
+    def _write(self, out: Path, merged: MergeOutcome, maps: dict[str, SideMap], clouds: dict[str, np.ndarray],
+               labels: RowLabels, trees: list) -> None:
         """The merge's files into `out`, each moved in only once all were written (a stop meanwhile leaves
-        the earlier set whole), as `orchard-map run` writes its result folder."""
-        with staged_folder(out) as stage:
-            write_merge(stage, merged, self.maps, clouds, trees)
-            write_tree_cloud(stage, labels, trees)
+        the earlier set whole), as `orchard-map run` writes its result folder. Runs on the writer thread."""
+        try:
+            with staged_folder(out) as stage:
+                write_merge(stage, merged, maps, clouds, trees)
+                write_tree_cloud(stage, labels, trees)
+        except Exception as err:  # noqa: BLE001 - a full or unwritable folder: reported, and the node ends with 2
+            text = f"the merge's files were not written to {out}: {err}"
+            self.get_logger().error(text if isinstance(err, OrchardMappingError) else
+                                    f"{text}\n{traceback.format_exc()}")
+            self.errors.append(text)
+            self._publish_status()
+            self._stop = 2
 
     def _publish(self, merged: MergeOutcome, clouds: dict[str, np.ndarray], trees: list) -> None:
         front, back = self.maps["front"], self.maps["back"]
@@ -211,7 +235,7 @@ class SideMergerNode(Node):
 
 
 def main(argv: list[str] | None = None) -> int:
-    return run_node(SideMergerNode, "side_merger")
+    return run_node(SideMergerNode, "side_merger", finish=lambda node: node.close())
 
 
 if __name__ == "__main__":

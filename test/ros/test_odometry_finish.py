@@ -63,7 +63,7 @@ def test_the_finishing_thread_goes_on_after_the_node_is_marked_done(node, monkey
     it is still finished and published by the same thread."""
     import orchard_mapping.ros.rgbd_odometry as mod
 
-    def fake_finish(session, timings, grounds=None):
+    def fake_finish(session, timings, grounds=None, process=None):
         if session.side == "front":
             raise OrchardMappingError("no keyframes")
         return SimpleNamespace(side=session.side, keyframe_poses=[np.eye(4)], cloud_points=np.zeros((5, 3)),
