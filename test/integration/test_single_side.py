@@ -38,7 +38,7 @@ from orchard_mapping.pipeline import SideSession, SpooledKeyframeImages, Timings
 from orchard_mapping.pipeline.fruit import add_fruit
 from orchard_mapping.pipeline.merge import merge_to_trees
 from orchard_mapping.pipeline.traits import measure_trees
-from orchard_mapping.ros.finisher import finish_in_child
+from orchard_mapping.ros.finisher import FinishingProcess, finish_in_child
 from orchard_mapping.sim.scenario import load_scenario
 from orchard_mapping.sim.simulate import simulate
 
@@ -269,11 +269,13 @@ def test_a_side_fed_frame_by_frame_with_spooled_keyframes_is_the_side_run_wrote(
     sim, out = reconstructed
     seq = read_rgbd(sim / "front")
     images = SpooledKeyframeImages(tmp_path)
+    process = FinishingProcess()  # as the node does: started as the side begins, waiting for the side's end
     session = SideSession("front", seq.intrinsics, _with_true_masks(sim), images, bag=seq.bag)
     made = sum(session.add(frame)[1] for frame in seq)
     assert len(list(images.dir.glob("*_depth.npy"))) == made > 20
-    side = finish_in_child(session, Timings())  # as the node finishes a side: in a child process
+    side = finish_in_child(session, Timings(), process=process)  # as the node finishes a side: in that process
     assert not images.dir.exists()  # the spool goes with the side
+    assert not process._proc.is_alive() and process._proc.exitcode == 0  # one side, then it is gone
     tum = read_tum(out / "trajectory_front.tum")
     assert np.array_equal(side.keyframe_stamps, tum.stamps)
     assert np.abs(side.keyframe_poses[:, :3, 3] - tum.positions).max() < 1e-6
