@@ -93,8 +93,8 @@ class FinishingProcess:
     """A child process that finishes one side, started before that side ends.
 
     Spawning it and importing the pipeline (GTSAM, Open3D, onnxruntime) took about 5 s of a side's latency
-    when the process was started at the side's end; the live node starts the next one as soon as a side's
-    finishing begins, while the camera is still being tracked, so the side's end waits only for the work."""
+    when the process was started at the side's end; the live node starts one as each side begins, while the
+    camera is tracked, so the side's end waits only for the work."""
 
     def __init__(self, name: str = "finish") -> None:
         ctx = mp.get_context("spawn")
@@ -139,7 +139,8 @@ class FinishingProcess:
             session.images.close()
 
     def close(self) -> None:
-        """Stop the process (at once when it waits for a side; at most 30 s when it is finishing one)."""
+        """Stop the process: once its imports are done when it waits for a side; at most 30 s when it is
+        finishing one."""
         self._conn.close()
         self._proc.join(timeout=30)
         if self._proc.is_alive():
