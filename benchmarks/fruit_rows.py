@@ -60,7 +60,7 @@ def main() -> None:
     a = ap.parse_args()
     rows = []
     print("| row | source | visible / all | front | back | naive sum | incl.-excl. | ours | ours vs visible % "
-          "| per-tree error % (median) | twice % of both | position mm | diameter MAE mm | fruit s |")
+          "| per-tree error % (median) | twice % of both | position mm | diameter MAE / bias mm | fruit s |")
     print("|---|---|---|---|---|---|---|---|---|---|---|---|---|---|")
     for spec in a.rows:
         scenario, seed = spec.split(":")
@@ -96,13 +96,14 @@ def main() -> None:
                    "per_tree_error_median_pct": 100.0 * float(np.median(per_tree)) if per_tree else None,
                    "twice_per_both_pct": dc.get("per_both_percent"),
                    "position_error_median_mm": dc.get("position_error_median_mm"),
-                   "diameter_mae_mm": dc.get("diameter_mae_mm"), "fruit_seconds": secs}
+                   "diameter_mae_mm": dc.get("diameter_mae_mm"), "diameter_bias_mm": dc.get("diameter_bias_mm"),
+                   "fruit_seconds": secs}
             rows.append(row)
             f = lambda v, d=1: "n/a" if v is None else f"{v:.{d}f}"  # noqa: E731
             print(f"| {spec} | {source} | {visible} / {total} | {counts['front']} | {counts['back']} | "
                   f"{counts['naive']} | {counts['ie']} | {counts['ours']} | {f(row['ours_vs_visible_pct'])} | "
                   f"{f(row['per_tree_error_median_pct'])} | {f(row['twice_per_both_pct'])} | "
-                  f"{f(row['position_error_median_mm'])} | {f(row['diameter_mae_mm'])} | {secs:.1f} |", flush=True)
+                  f"{f(row['position_error_median_mm'])} | {f(row['diameter_mae_mm'])} / {f(row['diameter_bias_mm'])} | {secs:.1f} |", flush=True)
     if a.json:
         a.json.write_text(portable_json({"benchmark": "fruit_rows", "trees": a.trees, "rows": rows}, indent=1))
 

@@ -107,6 +107,39 @@ def test_pieces_and_specks_far_smaller_than_the_sides_fruit_are_dropped(seed):
     assert len(fruit_of_side("front", small, FruitParams(min_size_of_median=0.7)).positions) == 30
 
 
+@pytest.mark.parametrize("seed", [0, 1, 2])
+def test_an_outline_round_two_touching_fruit_neither_joins_them_nor_sizes_them(seed):
+    """30 apples (r 37-43 mm, 5-10 views), 6 of them in 3 touching pairs (centres 75 mm apart). In 3 views of
+    each pair the pixel model's instance holds both (its centre between them, its radius twice a fruit's, the
+    most pixels of any view), and 4 other apples have 3 views each with a red leaf beside them in their outline
+    (radius x 1.6, centre 1.5 cm off). Without the rule a pair is one fruit and those 4 are sized by the large
+    views; with it, 30 fruit within 4 mm of their diameters. A crop whose apples vary from 33 to 48 mm keeps
+    every fruit and view."""
+    rng = np.random.default_rng(seed)
+    centres = np.column_stack([np.arange(30) * 0.25, rng.uniform(-0.3, 0.3, 30), rng.uniform(0.8, 2.0, 30)])
+    for a in (0, 10, 20):  # fruit a and a + 1 touch
+        centres[a + 1] = centres[a] + [0.075, 0.0, 0.0]
+    radii = rng.uniform(0.037, 0.043, 30)
+    views = rng.integers(5, 11, 30)
+    obs = _observed(rng, centres, radii, views)
+    for a in (0, 10, 20):
+        mid = 0.5 * (centres[a] + centres[a + 1])
+        obs += [FruitObservation(20 + v, mid + rng.normal(0, 0.002, 3), 0.08, 400) for v in range(3)]
+    for a in (4, 8, 14, 26):
+        obs += [FruitObservation(20 + v, centres[a] + [0.015, 0.0, 0.0], 1.6 * radii[a], 400) for v in range(3)]
+    off = fruit_of_side("front", obs, FruitParams(max_size_of_median=0.0))
+    assert len(off.positions) < 30 and np.abs(off.diameters_m - 0.08).max() > 0.03
+    side = fruit_of_side("front", obs, FruitParams())
+    assert len(side.positions) == 30
+    nearest = np.linalg.norm(side.positions[:, None] - centres[None], axis=2).argmin(axis=1)
+    assert sorted(nearest.tolist()) == list(range(30))
+    assert np.abs(side.diameters_m - 2 * radii[nearest]).max() < 0.004
+    varied = np.linspace(0.033, 0.048, 30)
+    obs = _observed(rng, centres + [0.0, 0.0, 0.5], varied, views)
+    side = fruit_of_side("front", obs, FruitParams())
+    assert len(side.positions) == 30 and sorted(side.views.tolist()) == sorted(views.tolist())  # every view kept
+
+
 def test_both_sides_count_each_fruit_once_and_the_baselines_differ():
     rng = np.random.default_rng(5)
     true = np.column_stack([np.arange(20) * 0.09, rng.uniform(-0.3, 0.3, 20), rng.uniform(0.8, 2.0, 20)])
