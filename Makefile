@@ -37,8 +37,12 @@ lint: setup
 
 # pytest exit 5 means "no tests collected": report it plainly and fail.
 # -p no:dash: the pytest plugin of dash (pulled in by open3d) is not ours.
+# The test files run on TEST_WORKERS pytest-xdist workers (2: the project's 2-core machine; 0 runs them in
+# this process), a file's tests on one worker; rows shared by several files are made once (test/conftest.py).
+TEST_WORKERS ?= 2
 test: setup
-	@rc=0; $(PY) -m pytest test -q -ra --durations=15 --timeout=1800 -p no:dash $(PYTEST_ARGS) || rc=$$?; \
+	@rc=0; $(PY) -m pytest test -q -ra --durations=15 --timeout=1800 -p no:dash -n $(TEST_WORKERS) --dist loadfile \
+	  $(PYTEST_ARGS) || rc=$$?; \
 	if [ $$rc -eq 5 ]; then echo "make test: pytest collected no tests (exit 5)" >&2; fi; \
 	exit $$rc
 

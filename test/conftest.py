@@ -31,7 +31,14 @@ os.environ["ROS_AUTOMATIC_DISCOVERY_RANGE"] = "LOCALHOST"
 # One random ROS domain per test session (forced, like the discovery range), so
 # that concurrent test runs on one machine (two developers, CI) never see each
 # other's topics. 1..101 are domain ids safe on Linux for any participant count.
-os.environ["ROS_DOMAIN_ID"] = str(random.SystemRandom().randint(1, 101))
+# `make test` runs the files on pytest-xdist workers: the controller draws the session's domain and each
+# worker (which inherits the controller's environment) takes the next ones, so two workers' graphs never meet.
+_WORKER = os.environ.get("PYTEST_XDIST_WORKER", "")  # "gw0", "gw1", ... on a worker; "" otherwise
+if _WORKER and "ORCHARD_TEST_DOMAIN" in os.environ:
+    os.environ["ROS_DOMAIN_ID"] = str(1 + (int(os.environ["ORCHARD_TEST_DOMAIN"]) + int(_WORKER[2:])) % 101)
+else:
+    os.environ["ORCHARD_TEST_DOMAIN"] = str(random.SystemRandom().randint(0, 100))
+    os.environ["ROS_DOMAIN_ID"] = str(1 + int(os.environ["ORCHARD_TEST_DOMAIN"]))
 
 import cv2  # noqa: E402
 import pytest  # noqa: E402
@@ -69,7 +76,7 @@ def _prune_ended_sessions(tmp_path_factory) -> None:
     ~4 GB of simulated rows, and on a machine that runs the suite again and again (CI) the kept folders
     filled its disk during the next run (a CI run once failed with "No space left on device"). A folder whose
     session is still running (its `.lock` names a live process) is left alone."""
-    base = tmp_path_factory.getbasetemp()
+    base = _session_temp(tmp_path_factory)
     if base.parent.name != f"pytest-of-{_user()}":
         return  # --basetemp given: pytest empties that folder itself
     for old in base.parent.glob("pytest-*"):
@@ -82,6 +89,35 @@ def _prune_ended_sessions(tmp_path_factory) -> None:
         if pid is not None and process_alive(pid):
             continue
         shutil.rmtree(old, ignore_errors=True)
+
+
+def _session_temp(tmp_path_factory):
+    """The session's temporary folder, the same for every xdist worker (each worker's own is a folder in it)."""
+    base = tmp_path_factory.getbasetemp()
+    return base.parent if _WORKER else base
+
+
+@contextmanager
+def _made_once(tmp_path_factory, name: str):
+    """`with _made_once(factory, name) as (folder, made):` a session fixture's folder that every xdist worker
+    shares: the first worker to come makes it (made False: fill it) while the others wait on a file lock, and
+    they then read it (made True). Without xdist: a new folder, made False."""
+    import fcntl
+
+    root = _session_temp(tmp_path_factory)
+    if not _WORKER:
+        yield tmp_path_factory.mktemp(name), False
+        return
+    folder, done = root / f"shared_{name}", root / f"shared_{name}.done"
+    with open(root / f"shared_{name}.lock", "w") as lock:
+        fcntl.flock(lock, fcntl.LOCK_EX)  # held while the folder is made; released at the end of the block
+        if done.is_file():
+            yield folder, True
+            return
+        shutil.rmtree(folder, ignore_errors=True)  # a worker that failed half way left it
+        folder.mkdir()
+        yield folder, False
+        done.touch()
 
 
 def _user() -> str:
@@ -126,12 +162,13 @@ def standard_row(tmp_path_factory, seed_offset):
     from orchard_mapping.sim.scenario import load_scenario
     from orchard_mapping.sim.simulate import simulate
 
-    root = tmp_path_factory.mktemp("standard")
-    sc = load_scenario("standard", {"row.n_trees": 2, "camera.rate_hz": 15, "masks_every": 1})
-    sim = simulate(sc, 11 + seed_offset, root / "standard").out_dir
-    out = root / "result"
-    run(sim / "front", sim / "back", out,
-        load_config(overrides={"trunks": {"source": "masks", "masks_dir": str(sim / "masks")}}))
+    with _made_once(tmp_path_factory, "standard") as (root, made):
+        sim, out = root / "standard", root / "result"
+        if not made:
+            sc = load_scenario("standard", {"row.n_trees": 2, "camera.rate_hz": 15, "masks_every": 1})
+            sim = simulate(sc, 11 + seed_offset, sim).out_dir
+            run(sim / "front", sim / "back", out,
+                load_config(overrides={"trunks": {"source": "masks", "masks_dir": str(sim / "masks")}}))
     return sim, out
 
 
@@ -146,14 +183,15 @@ def loop_row(tmp_path_factory, seed_offset):
     from orchard_mapping.sim.scenario import load_scenario
     from orchard_mapping.sim.simulate import simulate
 
-    root = tmp_path_factory.mktemp("loop")
-    sc = load_scenario("loop", {"row.n_trees": 2, "camera.rate_hz": 15, "masks_every": 1})
-    sim = simulate(sc, 11 + seed_offset, root / "loop").out_dir
-    out = root / "result"
-    # with the trunk worker process, as `orchard-map run` does: the drive's sides finish one after the other
-    run(sim / "loop", None, out, load_config(overrides={
-        "input": {"side_source": "trajectory"},
-        "trunks": {"source": "masks", "masks_dir": str(sim / "masks" / "loop")}}), trunk_worker=True)
+    with _made_once(tmp_path_factory, "loop") as (root, made):
+        sim, out = root / "loop", root / "result"
+        if not made:
+            sc = load_scenario("loop", {"row.n_trees": 2, "camera.rate_hz": 15, "masks_every": 1})
+            sim = simulate(sc, 11 + seed_offset, sim).out_dir
+            # with the trunk worker process, as `orchard-map run` does: the drive's sides finish one after the other
+            run(sim / "loop", None, out, load_config(overrides={
+                "input": {"side_source": "trajectory"},
+                "trunks": {"source": "masks", "masks_dir": str(sim / "masks" / "loop")}}), trunk_worker=True)
     return sim, out
 
 
@@ -189,6 +227,18 @@ class Accuracy:
 @pytest.fixture
 def accuracy(request) -> Accuracy:
     return Accuracy(request.node.nodeid)
+
+
+def pytest_sessionfinish(session):
+    """On an xdist worker: hand this worker's accuracy checks to the controller, which prints them all."""
+    if _WORKER and hasattr(session.config, "workeroutput"):
+        session.config.workeroutput["orchard_accuracy"] = json.dumps(_RECORDS)
+
+
+@pytest.hookimpl(optionalhook=True)
+def pytest_testnodedown(node, error):
+    """On the xdist controller: a worker's accuracy checks (pytest_sessionfinish above)."""
+    _RECORDS.extend(json.loads(getattr(node, "workeroutput", {}).get("orchard_accuracy", "[]")))
 
 
 def pytest_terminal_summary(terminalreporter):
