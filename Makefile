@@ -22,7 +22,7 @@ SETUP_INPUTS := requirements.lock setup.py setup.cfg package.xml \
                 scripts/setup.sh cmake/fix_wheel_includes.cmake \
                 $(shell find orchard_mapping_msgs vendor -type f 2>/dev/null)
 
-.PHONY: setup lint test test-portable demo bench fixtures clean train-setup
+.PHONY: setup lint test test-slow test-portable demo bench fixtures clean train-setup
 
 setup: $(STAMP)
 
@@ -39,11 +39,18 @@ lint: setup
 # -p no:dash: the pytest plugin of dash (pulled in by open3d) is not ours.
 # The test files run on TEST_WORKERS pytest-xdist workers (2: the project's 2-core machine; 0 runs them in
 # this process), a file's tests on one worker; rows shared by several files are made once (test/conftest.py).
+# `make test` leaves out the tests marked slow (end-to-end runs of minutes each); `make test-slow` runs them.
+# `.ci/run` runs both.
 TEST_WORKERS ?= 2
+PYTEST_RUN = $(PY) -m pytest test -q -ra --durations=15 --timeout=1800 -p no:dash -n $(TEST_WORKERS) --dist loadfile
 test: setup
-	@rc=0; $(PY) -m pytest test -q -ra --durations=15 --timeout=1800 -p no:dash -n $(TEST_WORKERS) --dist loadfile \
-	  $(PYTEST_ARGS) || rc=$$?; \
+	@rc=0; $(PYTEST_RUN) -m "not slow" $(PYTEST_ARGS) || rc=$$?; \
 	if [ $$rc -eq 5 ]; then echo "make test: pytest collected no tests (exit 5)" >&2; fi; \
+	exit $$rc
+
+test-slow: setup
+	@rc=0; $(PYTEST_RUN) -m slow $(PYTEST_ARGS) || rc=$$?; \
+	if [ $$rc -eq 5 ]; then echo "make test-slow: pytest collected no tests (exit 5)" >&2; fi; \
 	exit $$rc
 
 # The accuracy tests again with OpenCV's optimised paths off, on one thread, and on two other seeds

@@ -67,6 +67,8 @@ def switches() -> str:
 def pytest_configure(config):
     config.addinivalue_line("markers", "accuracy: checks accuracy against the simulator's truth "
                                        "(repeated by make test-portable)")
+    config.addinivalue_line("markers", "slow: end-to-end runs of minutes each (the live graph's fault replays, a "
+                                       "block drive, same bytes twice): `make test-slow`, not `make test`; CI runs both")
 
 
 @pytest.fixture(scope="session", autouse=True)

@@ -22,6 +22,9 @@ from orchard_mapping.cli.main import app
 from orchard_mapping.io.block import read_block
 from orchard_mapping.io.results import read_trees
 
+# `make test-slow` (and CI): a two-row block simulated and run, ~3 minutes
+pytestmark = pytest.mark.slow
+
 runner = CliRunner()
 SEED = 3
 # 10 Hz at 0.5 m/s, level camera: the front end keeps track round both kinds of turn (at 6 Hz, or at 0.7 m/s,

@@ -25,6 +25,9 @@ from orchard_mapping.io.bags import read_rgbd
 from orchard_mapping.sim.scenario import load_scenario
 from orchard_mapping.sim.simulate import simulate
 
+# `make test-slow` (and CI): two runs of a row on one and two threads, ~1.5 minutes
+pytestmark = pytest.mark.slow
+
 SMALL_CAMERA = {"camera.width": 320, "camera.height": 240, "camera.fx": 307.5, "camera.fy": 307.5,
                 "camera.cx": 159.5, "camera.cy": 119.5, "camera.rate_hz": 5, "masks_every": 0}
 WALL_CLOCK = {"timings.json"}  # the one file that records how long the run took

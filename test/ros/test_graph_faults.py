@@ -15,6 +15,9 @@ from graph_checks import COLOUR, alive, launch_and_kill, mask_params, odometry_s
 
 from orchard_mapping.io.bags import iter_messages, iter_raw  # noqa: E402
 
+# `make test-slow` (and CI): two replays of the whole graph with a CPU hog beside them, ~4.5 minutes
+pytestmark = pytest.mark.slow
+
 
 def test_detector_ground_fitter_merger_reporter_and_recorder_killed_mid_row(standard_row, tmp_path, cpu_hog):
     """In one replay: the trunk detector and the recorder are killed after the detector answered 10 requests of
