@@ -42,16 +42,19 @@ lint: setup
 # `make test` leaves out the tests marked slow (end-to-end runs of minutes each); `make test-slow` runs them.
 # `.ci/run` runs both.
 TEST_WORKERS ?= 2
-PYTEST_RUN = $(PY) -m pytest test -q -ra --durations=15 --timeout=1800 -p no:dash -n $(TEST_WORKERS) --dist loadfile
+# $(1): the marker expression of the tests to run
+define run_pytest
+@rc=0; $(PY) -m pytest test -q -ra --durations=15 --timeout=1800 -p no:dash -n $(TEST_WORKERS) --dist loadfile \
+  -m $(1) $(PYTEST_ARGS) || rc=$$?; \
+if [ $$rc -eq 5 ]; then echo "make $@: pytest collected no tests (exit 5)" >&2; fi; \
+exit $$rc
+endef
+
 test: setup
-	@rc=0; $(PYTEST_RUN) -m "not slow" $(PYTEST_ARGS) || rc=$$?; \
-	if [ $$rc -eq 5 ]; then echo "make test: pytest collected no tests (exit 5)" >&2; fi; \
-	exit $$rc
+	$(call run_pytest,"not slow")
 
 test-slow: setup
-	@rc=0; $(PYTEST_RUN) -m slow $(PYTEST_ARGS) || rc=$$?; \
-	if [ $$rc -eq 5 ]; then echo "make test-slow: pytest collected no tests (exit 5)" >&2; fi; \
-	exit $$rc
+	$(call run_pytest,slow)
 
 # The accuracy tests again with OpenCV's optimised paths off, on one thread, and on two other seeds
 # (test/conftest.py); prints one table (build/accuracy_table.md) and fails on a check within 20 % of its limit.

@@ -279,8 +279,7 @@ def fruit_of_side(side: str, observations: list[FruitObservation], params: Fruit
         limit = params.max_size_of_median * _typical_diameter(dia_a, views_a)
         whole = [o for o in observations if 2.0 * o.radius_m <= limit]
         if len(whole) < len(observations):
-            pos_a, dia_a, views_a = _linked(whole, params) if whole else (np.zeros((0, 3)), np.zeros(0),
-                                                                          np.zeros(0, int))
+            pos_a, dia_a, views_a = _linked(whole, params)
     if not len(pos_a):
         return empty
     if params.min_size_of_median > 0:

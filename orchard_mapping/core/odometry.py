@@ -150,10 +150,10 @@ def sample_depth(depth: np.ndarray, uv: np.ndarray, edge_m: float, sigma_coeff: 
     r = edge_window_px // 2
     iu = np.clip(np.round(uv[:, 0]).astype(int), r, w - 1 - r)
     iv = np.clip(np.round(uv[:, 1]).astype(int), r, h - 1 - r)
-    # (N, k*k), row-major: one gather of each pixel's window (a stack of k*k gathers took 1.5 ms a frame)
-    win = np.lib.stride_tricks.sliding_window_view(depth, (edge_window_px, edge_window_px))[iv - r, iu - r].reshape(
-        len(iu), edge_window_px * edge_window_px)
-    centre = win.reshape(-1, edge_window_px, edge_window_px)[:, r - 1:r + 2, r - 1:r + 2].reshape(-1, 9)  # (N, 9)
+    # (N, k, k): one gather of each pixel's window (a stack of k*k gathers took twice as long)
+    windows = np.lib.stride_tricks.sliding_window_view(depth, (edge_window_px, edge_window_px))[iv - r, iu - r]
+    win = windows.reshape(len(iu), -1)  # (N, k*k), row-major
+    centre = windows[:, r - 1:r + 2, r - 1:r + 2].reshape(-1, 9)  # (N, 9)
     z = np.median(centre, axis=1).astype(np.float64)
     valid = np.all(win > 0, axis=1) & (win.max(axis=1) - win.min(axis=1) < edge_m + 5 * sigma_coeff * z * z)
     if rough_drop_fraction > 0 and np.count_nonzero(valid) >= 8:

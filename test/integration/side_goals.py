@@ -20,8 +20,6 @@ from orchard_mapping.sim.simulate import simulate
 
 DRIFT_MAX_PERCENT = 0.5
 ATE_MAX_PERCENT = 0.15
-
-
 SEED = 11
 
 
@@ -34,7 +32,6 @@ def _simulate(root: Path, scenario: str, seed: int, record: tuple[str, ...] = ("
 def _with_true_masks(sim: Path):
     """The default configuration with trunk masks from the simulator (the geometry without detector errors)."""
     return load_config(overrides={"trunks": {"source": "masks", "masks_dir": str(sim / "masks")}})
-
 
 
 def _true_trajectory(sim: Path, side: str) -> StampedTrajectory:
@@ -65,8 +62,6 @@ def _assert_side_map_within_goals(sm: SideMap, sim: Path, accuracy, label: str) 
     return ba
 
 
-
-
 # % of path. Bundle adjustment must not lose what the front end got: on these short rows (no loop verifies)
 # the front end is already at the sensor's noise floor (ATE 0.02-0.05 % of path since landmarks keep 3 px
 # from depth edges) and BA lands within noise of it, at worst 0.026 % above it (12 sides measured: 2- and
@@ -78,7 +73,6 @@ BA_VS_FRONT_END_MAX_PERCENT = 0.05
 def _assert_ba_keeps_front_end_accuracy(odo, ba, accuracy, label: str) -> None:
     accuracy.at_most(f"{label} BA ATE minus front-end ATE, % of path", ba.ate_percent - odo.ate_percent,
                      BA_VS_FRONT_END_MAX_PERCENT)
-
 
 
 def _poses(traj: StampedTrajectory) -> np.ndarray:
