@@ -60,7 +60,8 @@ def test_check_wanted_without_exit_after_sides_never_marks_done(node):
 
 def test_the_finishing_thread_goes_on_after_the_node_is_marked_done(node, monkeypatch):
     """exit_after_sides=1: the first side fails (the node is done, exit code 1), and a second side queued after
-    it is still finished and published by the same thread."""
+    it is still finished and published, the finishing thread still running. Each side is finished on a thread of
+    its own, so the two outcomes come in either order: the test waits for both."""
     import orchard_mapping.ros.rgbd_odometry as mod
 
     def fake_finish(session, timings, grounds=None, process=None):
@@ -76,8 +77,9 @@ def test_the_finishing_thread_goes_on_after_the_node_is_marked_done(node, monkey
     finisher = node._threads[1]
     node._finish.put((SimpleNamespace(side="front", frames=3), time.monotonic()))
     node._finish.put((SimpleNamespace(side="back", frames=3), time.monotonic()))
-    assert _wait(lambda: node.counts.finished == ["back"]), (node.counts, finisher.is_alive())
-    assert node.counts.failed == ["front"]
+    assert _wait(lambda: node.counts.finished == ["back"] and node.counts.failed == ["front"]
+                 and node._done.is_set()), (node.counts, finisher.is_alive())
+    assert node.counts.finished == ["back"] and node.counts.failed == ["front"]
     assert node._done.is_set()
     assert [sm.side for sm in published] == ["back"]
     assert finisher.is_alive()
