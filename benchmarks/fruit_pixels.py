@@ -3,9 +3,10 @@ and on real photographs where a folder of them is given.
 
 Simulated: the held-out seeds of orchard_mapping.train.fruit_pixels (HELDOUT_SEEDS, never used for training or
 for a choice), 2-tree rows, `--frames` frames per side spread over both sweeps, in each colour mix (red_fraction
-1.0, 0.0, 0.6) and two looks: `standard` (the standard scenario's colours and light) and `randomised` (each scene
-drawn by sim.domain.random_domain: sun, shade, leaf, soil, hedge and sky colours, blur, noise). Per approach
-(the colour GMM and the small network of models/), one row:
+1.0, 0.0, 0.6) and three looks: `standard` (the standard scenario's colours and light), `randomised` (each scene
+drawn by sim.domain.random_domain: sun, shade, leaf, soil, hedge and sky colours, blur, noise) and `varied` (the
+randomised look with the varied fruit, `fruit.look: varied`: blush, streaks, golden and pink varieties). Per
+approach (the colour GMM and the small network of models/, or the files given with --model), one row:
 
   pixel P/R/F1   over all pixels of the mix's frames
   inst R         true fruit (>= 20 visible px, the simulator's visibility rule) matched by a predicted instance
@@ -21,11 +22,13 @@ A row `truth` splits the true fruit mask itself: the ceiling that instance split
 Real (`--real DIR`: a folder with images/*.jpg and YOLO labels/*.txt, class x y w h normalised; see
 docs/fruit.md for the one measured). Only boxes are annotated there, so: box recall (a true box matched by a
 predicted instance's bounding box with IoU >= 0.5), instance precision likewise, and the share of predicted fruit
-pixels inside any true box (an upper bound of pixel precision). Never tuned on.
+pixels inside any true box (an upper bound of pixel precision). Never tuned on. `--real-scales`: the photographs
+resized by each factor first (a photograph's fruit may be several times the pixels the simulator's camera gives
+a fruit at 1.4 m: 30-45 px); each scale is reported, none chosen.
 
 Usage:
-  python benchmarks/fruit_pixels.py [--frames 4] [--looks standard randomised] [--real DIR]
-        [--json benchmarks/results/fruit_pixels.json]
+  python benchmarks/fruit_pixels.py [--frames 4] [--looks standard randomised varied] [--real DIR]
+        [--real-scales 1 0.5 0.25] [--model NAME=FILE ...] [--json benchmarks/results/fruit_pixels.json]
 """
 
 from __future__ import annotations
@@ -68,8 +71,8 @@ def simulated(models: dict[str, fp.FruitPixelModel], looks: list[str], frames: i
     rows = []
     for look in looks:
         for mix, rf in MIXES.items():
-            data = tf.frames_for(tf.HELDOUT_SEEDS, red_fraction=rf, randomise=look == "randomised",
-                                 frames_per_side=frames)
+            data = tf.frames_for(tf.HELDOUT_SEEDS, red_fraction=rf, randomise=look != "standard",
+                                 frames_per_side=frames, fruit_look="varied" if look == "varied" else "plain")
             for name, model in {**models, "truth": None}.items():
                 scores, half, cc, ms = [], [], [], []
                 for f in data:
@@ -114,15 +117,17 @@ def _box_iou(a: np.ndarray, b: np.ndarray) -> np.ndarray:
     return inter / np.maximum(area(a)[:, None] + area(b)[None, :] - inter, 1e-9)
 
 
-def real(models: dict[str, fp.FruitPixelModel], folder: Path) -> list[dict[str, Any]]:
+def real(models: dict[str, fp.FruitPixelModel], folder: Path, scales: list[float]) -> list[dict[str, Any]]:
     images = sorted((folder / "images").glob("*.jpg"))
     rows = []
-    for name, model in models.items():
+    for (name, model), scale in ((m, s) for m in models.items() for s in scales):
         true_n = found = pred_n = matched = 0
         in_box = px = 0
         ms = []
         for path in images:
             rgb = cv2.cvtColor(cv2.imread(str(path)), cv2.COLOR_BGR2RGB)
+            if scale != 1.0:
+                rgb = cv2.resize(rgb, None, fx=scale, fy=scale, interpolation=cv2.INTER_AREA)
             h, w = rgb.shape[:2]
             text = (folder / "labels" / f"{path.stem}.txt").read_text().split()
             lab = np.asarray(text, float).reshape(-1, 5)  # (B, 5) class x y w h; an empty file: no fruit
@@ -142,12 +147,12 @@ def real(models: dict[str, fp.FruitPixelModel], folder: Path) -> list[dict[str, 
                 cover[max(y1, 0):y2, max(x1, 0):x2] = True
             in_box += int(np.count_nonzero(pred.mask & cover))
             px += int(np.count_nonzero(pred.mask))
-        row = {"source": folder.name, "model": name, "images": len(images), "true_boxes": true_n,
+        row = {"source": folder.name, "model": name, "scale": scale, "images": len(images), "true_boxes": true_n,
                "box_recall": round(found / max(true_n, 1), 4), "instance_precision": round(matched / max(pred_n, 1), 4),
                "predicted_per_image": round(pred_n / max(len(images), 1), 1),
                "fruit_pixels_in_boxes": round(in_box / max(px, 1), 4), "ms": round(float(np.median(ms)), 1)}
         rows.append(row)
-        print(f"real {folder.name} {name}: box recall {row['box_recall']:.3f} ({true_n} boxes, {len(images)} images), "
+        print(f"real {folder.name} x{scale:g} {name}: box recall {row['box_recall']:.3f} ({true_n} boxes, {len(images)} images), "
               f"instance precision {row['instance_precision']:.3f}, {row['predicted_per_image']} instances/image, "
               f"fruit pixels in boxes {row['fruit_pixels_in_boxes']:.3f}, {row['ms']:.0f} ms", flush=True)
     return rows
@@ -156,13 +161,18 @@ def real(models: dict[str, fp.FruitPixelModel], folder: Path) -> list[dict[str, 
 def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--frames", type=int, default=4, help="frames per side and scene")
-    ap.add_argument("--looks", nargs="+", default=["standard", "randomised"], choices=["standard", "randomised"])
+    ap.add_argument("--looks", nargs="+", default=["standard", "randomised", "varied"],
+                    choices=["standard", "randomised", "varied"])
+    ap.add_argument("--real-scales", nargs="+", type=float, default=[1.0])
+    ap.add_argument("--model", action="append", default=[], metavar="NAME=FILE",
+                    help="score these model files instead of the shipped two (repeat)")
     ap.add_argument("--real", type=Path, default=None, help="folder with images/*.jpg and YOLO labels/*.txt")
     ap.add_argument("--json", type=Path, default=None)
     a = ap.parse_args()
-    models = {k: fp.load_model(p) for k, p in MODELS.items()}
+    files = dict(m.split("=", 1) for m in a.model) if a.model else MODELS
+    models = {k: fp.load_model(p) for k, p in files.items()}
     rows = simulated(models, a.looks, a.frames)
-    real_rows = real(models, a.real) if a.real else []
+    real_rows = real(models, a.real, a.real_scales) if a.real else []
     if a.json:
         a.json.parent.mkdir(parents=True, exist_ok=True)
         a.json.write_text(portable_json({"benchmark": "fruit_pixels", "heldout_seeds": list(tf.HELDOUT_SEEDS),

@@ -6,10 +6,15 @@ rows; point-splatting renderer and stereo-like sensor of `sim/splat.py`; the sim
 `orchard-map run front back --out ...` and `orchard-map evaluate --json` run on it as a user would. One table
 per row: per side trunks found (recall, precision vs the truth), diameter MAE and bias, drift and ATE in % of
 the path; the merge's outcome (exit code, rotation / translation error, merged map error) and run times.
+`--fruit LO HI`: LO-HI fruit per tree hung in the crowns' outer shell (this renderer's own fruit look: a
+mottled blush over a yellow-green ground, or green to yellow-green) and the run made with `fruit.enabled=true`:
+the row's fruit count against the fruit visible from either side, the per-tree count error (median), fruit
+counted twice per 100 seen from both sides, position and diameter errors.
 
 Usage:
   python benchmarks/unseen_rows.py [--rows 2] [--trees 6] [--seed 0] [--rate 10] [--motions standard handheld_walk]
         [--workdir DIR (default: the system temporary folder/unseen_rows)] [--reuse] [--json benchmarks/results/unseen_rows.json] [--set key=value ...]
+        [--fruit 20 40]
 
 Row k uses seed (seed + k) and motion motions[k % len(motions)] (default: row 0 steady, row 1 hand-held).
 """
@@ -19,6 +24,7 @@ from __future__ import annotations
 import argparse
 import json
 import os
+import statistics
 import subprocess
 import sys
 import tempfile
@@ -53,9 +59,10 @@ def _product_state() -> dict[str, Any]:
 def run_row(k: int, args: argparse.Namespace, console: Console) -> dict[str, Any]:
     motion = args.motions[k % len(args.motions)]
     seed = args.seed + k
-    row_dir = Path(args.workdir) / f"row{k}_{motion}_seed{seed}"
+    row_dir = Path(args.workdir) / f"row{k}_{motion}_seed{seed}{'_fruit' if args.fruit else ''}"
     sim_dir, out_dir = row_dir / "sim", row_dir / "out"
-    spec = ScanRowSpec(n_trees=args.trees, motion=motion, rate_hz=args.rate)
+    spec = ScanRowSpec(n_trees=args.trees, motion=motion, rate_hz=args.rate,
+                       fruit_per_tree=tuple(args.fruit) if args.fruit else (0, 0))
     rec: dict[str, Any] = {"row": k, "motion": motion, "seed": seed, "trees": args.trees, "rate_hz": args.rate,
                            "dir": str(row_dir), "product": _product_state()}
     if args.reuse and (sim_dir / "ground_truth.json").is_file():
@@ -67,7 +74,7 @@ def run_row(k: int, args: argparse.Namespace, console: Console) -> dict[str, Any
         rec["frames"] = res.frames
         console.print(f"row {k}: generated {res.frames} frames in {rec['generate_s']} s")
     cmd = [CLI, "run", str(sim_dir / "front"), str(sim_dir / "back"), "--out", str(out_dir)]
-    for s in args.set:
+    for s in (["fruit.enabled=true"] if args.fruit else []) + args.set:
         cmd += ["--set", s]
     if not (args.reuse and (out_dir / "timings.json").is_file()):
         t = time.perf_counter()
@@ -114,6 +121,16 @@ def summarise(rec: dict[str, Any]) -> dict[str, Any]:
     tr = ev.get("traits") or {}
     out["trees"] = {"matched": mt.get("matched"), "true": mt.get("true_trees"), "false": mt.get("false"),
                     "diameter_mae_mm": tr.get("trunk_diameter_mae_mm"), "position_rmse_mm": mt.get("position_rmse_mm")}
+    fc, dc = ev.get("fruit_count") or {}, ev.get("double_count") or {}
+    per_tree = [abs(p["est_fruit_count"] - p["true_fruit_visible"]) / p["true_fruit_visible"] * 100
+                for p in ev.get("per_tree") or [] if p.get("est_fruit_count") is not None and p["true_fruit_visible"]]
+    out["fruit"] = None if not fc else {
+        "counted": fc.get("estimated"), "true_visible": fc.get("true_visible"), "true_all": fc.get("true_all"),
+        "error_visible_percent": fc.get("error_visible_percent"),
+        "per_tree_error_median_percent": round(float(statistics.median(per_tree)), 1) if per_tree else None,
+        "twice_per_100_seen_from_both": dc.get("per_both_percent"), "false": dc.get("false"),
+        "position_error_median_mm": dc.get("position_error_median_mm"), "diameter_mae_mm": dc.get("diameter_mae_mm"),
+        "diameter_bias_mm": dc.get("diameter_bias_mm")}
     return out
 
 
@@ -136,6 +153,14 @@ def table(rec: dict[str, Any], s: dict[str, Any]) -> Table:
                  f"{_fmt(mm.get('translation_error_mm'))} mm; trees matched {s['trees']['matched']}/{s['trees']['true']}"
                  f" (false {s['trees']['false']}), two-side diameter MAE {_fmt(s['trees']['diameter_mae_mm'], 2)} mm"
                  + (f"; merge skipped: {m['skipped']}" if m["skipped"] and not m["succeeded"] else ""))
+    f = s.get("fruit")
+    if f:
+        t.caption += (f"\nfruit: {f['counted']} counted of {f['true_visible']} visible ({f['true_all']} on the trees): "
+                      f"{_fmt(f['error_visible_percent'], 1, ' %')}; per-tree error (median) "
+                      f"{_fmt(f['per_tree_error_median_percent'], 1, ' %')}; twice per 100 seen from both "
+                      f"{_fmt(f['twice_per_100_seen_from_both'], 1)}; false {f['false']}; position "
+                      f"{_fmt(f['position_error_median_mm'], 1, ' mm')}; diameter MAE {_fmt(f['diameter_mae_mm'], 1, ' mm')}"
+                      f" (bias {_fmt(f['diameter_bias_mm'], 1, ' mm')})")
     return t
 
 
@@ -150,6 +175,8 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--reuse", action="store_true", help="reuse generated rows and results in --workdir")
     ap.add_argument("--json", default=None, help="results JSON (default benchmarks/results/unseen_rows_<...>.json)")
     ap.add_argument("--set", action="append", default=[], help="config override passed to orchard-map run")
+    ap.add_argument("--fruit", type=int, nargs=2, default=None, metavar=("LO", "HI"),
+                    help="hang LO-HI fruit per tree and run the fruit stage")
     args = ap.parse_args(argv)
     os.environ.setdefault("ROS_AUTOMATIC_DISCOVERY_RANGE", "LOCALHOST")
     console = Console(width=150)
@@ -162,7 +189,8 @@ def main(argv: list[str] | None = None) -> int:
             console.print(rec.get("run_tail", "")[-600:])
         records.append(rec)
     path = Path(args.json) if args.json else ROOT / "benchmarks" / "results" / (
-        f"unseen_rows_{args.trees}trees_{'_'.join(args.motions[:args.rows])}_seed{args.seed}.json")
+        f"unseen_rows_{args.trees}trees_{'_'.join(args.motions[:args.rows])}_seed{args.seed}"
+        f"{'_fruit' if args.fruit else ''}.json")
     path.parent.mkdir(parents=True, exist_ok=True)
     slim = [{k: v for k, v in r.items() if k != "evaluation"} | {"evaluation": r.get("evaluation")} for r in records]
     path.write_text(portable_json({"benchmark": "unseen_rows", "args": vars(args), "rows": slim}, indent=1))

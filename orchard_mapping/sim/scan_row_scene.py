@@ -8,7 +8,7 @@ Frames: the row's world frame (x along the row, z up); metres.
 
 from __future__ import annotations
 
-from dataclasses import dataclass
+from dataclasses import dataclass, field, replace
 from pathlib import Path
 
 import numpy as np
@@ -79,6 +79,11 @@ class ScanRowSpec:
     cx: float = 321.8
     cy: float = 238.4
     margin_m: float = 1.2
+    # Fruit in the crowns' outer shell (none by default: the rows measured before fruit existed stay as they
+    # were, their fruit draws come from a stream of their own)
+    fruit_per_tree: tuple[int, int] = (0, 0)
+    fruit_radius_m: tuple[float, float] = (0.033, 0.045)
+    fruit_red_fraction: float = 0.6
 
 
 class BumpyGround:
@@ -299,6 +304,14 @@ def scan_radius_guess(scan: ScanTree) -> np.ndarray:
     return np.array(out or [0.12])
 
 
+@dataclass(frozen=True)
+class ScanFruit:
+    tree: int
+    position: np.ndarray  # (3,) world centre
+    radius: float  # m
+    color: str  # "red" / "green"
+
+
 @dataclass
 class ScanRowScene:
     spec: ScanRowSpec
@@ -307,6 +320,82 @@ class ScanRowScene:
     posts: list[dict]
     points: PointScene
     row_x: tuple[float, float]
+    fruit: list[ScanFruit] = field(default_factory=list)
+
+
+_FRUIT_STREAM = 0xF2017  # the fruit's draws (seed, this): the rows without fruit keep every other draw
+FRUIT_POINT_SPACING_M = 0.0025
+
+
+def _fibonacci_sphere(n: int) -> np.ndarray:
+    """(n, 3) unit vectors spread evenly over the sphere."""
+    k = np.arange(n) + 0.5
+    z = 1 - 2 * k / n
+    phi = np.pi * (1 + 5**0.5) * k
+    r = np.sqrt(1 - z * z)
+    return np.column_stack([r * np.cos(phi), r * np.sin(phi), z])
+
+
+def _place_fruit(t: PlacedTree, n: int, spec: ScanRowSpec, rng: np.random.Generator) -> list[ScanFruit]:
+    """Up to n fruit hanging in the outer shell of tree t's crown: centred just outside a crown point that lies
+    in the outer 30 % of its 20 cm height band's reach from the crown's centre line, between 15 cm above the
+    clear trunk and 85 % of the tree's height, no two fruit interpenetrating."""
+    fol = t.points[~t.trunk]
+    h = (fol - t.ground_point) @ t.ground_normal
+    band = np.floor(h / 0.2).astype(int)
+    centre = np.zeros((len(fol), 2))
+    reach = np.zeros(len(fol))
+    for b in np.unique(band):
+        m = band == b
+        c = np.median(fol[m, :2], axis=0)
+        centre[m] = c
+        reach[m] = np.percentile(np.linalg.norm(fol[m, :2] - c, axis=1), 95)
+    rad = fol[:, :2] - centre
+    r_xy = np.linalg.norm(rad, axis=1)
+    ok = (h > t.clear_height + 0.15) & (h < 0.85 * t.height) & (r_xy > 0.7 * reach) & (r_xy > 0.05)
+    cand = np.flatnonzero(ok)
+    out: list[ScanFruit] = []
+    if not len(cand):
+        return out
+    for _ in range(n):
+        for _try in range(30):
+            i = int(cand[rng.integers(len(cand))])
+            r = float(rng.uniform(*spec.fruit_radius_m))
+            out_dir = np.append(rad[i] / r_xy[i], 0.0)
+            c = fol[i] + out_dir * 0.2 * r - np.array([0.0, 0.0, 0.5 * r])  # hanging below its spur
+            if all(np.linalg.norm(c - f.position) > r + f.radius + 0.005 for f in out):
+                red = bool(rng.uniform() < spec.fruit_red_fraction)
+                out.append(ScanFruit(t.id, c, r, "red" if red else "green"))
+                break
+    return out
+
+
+def _fruit_points(fruit: list[ScanFruit], rng: np.random.Generator, first_index: int
+                  ) -> tuple[np.ndarray, ...]:
+    """(xyz, radius, albedo, normal, cls, inst) of the fruit's surface points: this renderer's own fruit look
+    (a red fruit: a blush of its own red over a yellow-green ground, mottled by smooth noise and darker
+    towards a random side; a green one: green to yellow-green with faint mottling)."""
+    parts = []
+    for k, f in enumerate(fruit):
+        n = max(60, int(4 * np.pi * f.radius**2 / FRUIT_POINT_SPACING_M**2))
+        u = _fibonacci_sphere(n)
+        p = f.position + f.radius * u
+        mottle = _smooth_noise(u * f.radius, rng, (0.012, 0.03))
+        if f.color == "red":
+            blush = np.array([0.62, 0.07, 0.05]) * (1 - (w := rng.uniform())) + np.array([0.72, 0.24, 0.14]) * w
+            ground = np.array([0.64, 0.6, 0.22])
+            d = rng.normal(size=3)
+            d /= np.linalg.norm(d)
+            mix = np.clip(rng.uniform(0.6, 1.0) + 0.5 * (u @ d) + 0.4 * mottle, 0, 1)[:, None]
+            alb = ground * (1 - mix) + blush * mix
+        else:
+            g = rng.uniform()
+            alb = np.array([0.4, 0.56, 0.14]) * (1 - g) + np.array([0.62, 0.62, 0.24]) * g
+            alb = alb * (1 + 0.12 * mottle)[:, None]
+        alb = alb * rng.uniform(0.8, 1.15) * rng.uniform(0.94, 1.06, (n, 1))
+        parts.append((p, np.full(n, 0.8 * FRUIT_POINT_SPACING_M), alb, u, np.full(n, PCls.FRUIT, np.uint8),
+                      np.full(n, first_index + k, np.int32)))
+    return tuple(np.concatenate([q[i] for q in parts]) for i in range(6)) if parts else ()
 
 
 def _cylinder_points(c: np.ndarray, radius: float, height: float, spacing: float, rng: np.random.Generator
@@ -333,6 +422,19 @@ def build_scan_row(seed: int, spec: ScanRowSpec = ScanRowSpec(), trees: list[Sca
     ground = BumpyGround(rng, spec, xr, y_half)
     picks = rng.permutation(np.resize(rng.permutation(len(pool)), n))
     placed = [_place_tree(i, pool[int(picks[i])], float(xs[i]), float(ys[i]), ground, rng, spec) for i in range(n)]
+    fruit: list[ScanFruit] = []
+    if spec.fruit_per_tree[1] > 0:
+        f_rng = np.random.default_rng([seed, _FRUIT_STREAM])
+        for k, t in enumerate(placed):
+            mine = _place_fruit(t, int(f_rng.integers(spec.fruit_per_tree[0], spec.fruit_per_tree[1] + 1)), spec,
+                                f_rng)
+            if mine:  # the crown's points inside a fruit go (the fruit pushes the needles aside)
+                c = np.array([f.position for f in mine])
+                r = np.array([f.radius for f in mine])
+                d, j = cKDTree(c).query(t.points)
+                keep = t.trunk | (d > r[j] + 0.003)
+                placed[k] = replace(t, points=t.points[keep], trunk=t.trunk[keep])
+            fruit += mine
 
     parts: list[tuple[np.ndarray, ...]] = []  # (xyz, radius, albedo, normal, cls, inst)
     # --- trees: bark brown-grey with a per-tree tint and furrow noise; needles green, twigs darker
@@ -417,7 +519,9 @@ def build_scan_row(seed: int, spec: ScanRowSpec = ScanRowSpec(), trees: list[Sca
                               np.full(len(p), -1, np.int32)))
                 bx += rng.uniform(*spec.spacing_m)
 
+    if fruit:
+        parts.append(_fruit_points(fruit, np.random.default_rng([seed, _FRUIT_STREAM, 1]), 0))
     cat = [np.concatenate([p[k] for p in parts]) for k in range(6)]
     scene = PointScene(cat[0].astype(np.float32), cat[1].astype(np.float32),
                        np.clip(cat[2], 0, 1).astype(np.float32), cat[3].astype(np.float32), cat[4], cat[5])
-    return ScanRowScene(spec, ground, placed, posts, scene, (x0, x1))
+    return ScanRowScene(spec, ground, placed, posts, scene, (x0, x1), fruit)

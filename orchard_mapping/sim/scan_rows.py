@@ -9,7 +9,8 @@ the simulator (`orchard-map evaluate` reads the result).
 Truth is computed from the scene's own points here: trunk cylinders by slicing the full 360-degree scan
 and fitting an algebraic circle per slice (written here, no `orchard_mapping.core` estimator), local
 ground planes from the terrain function, what each side saw from the renderer's per-pixel buffers.
-Canopy volume (0.0: not stated, the evaluator skips it) and fruit (none) are left out.
+Canopy volume (0.0: not stated, the evaluator skips it) is left out; fruit only where the spec places them
+(`ScanRowSpec.fruit_per_tree`), each with its own visibility per side (the simulator's rule).
 
 The scene (scans, placement, trunk truth by slicing) is built in sim/scan_row_scene.py; here it is rendered,
 recorded and its truth written.
@@ -44,6 +45,7 @@ from orchard_mapping.sim.scenario import load_scenario
 from orchard_mapping.sim.simulate import fresh_output_folder
 from orchard_mapping.sim.splat import PCls, SplatFrame, SplatRenderer, StereoSensor
 from orchard_mapping.sim.trajectory import CameraPath, side_path
+from orchard_mapping.sim.truth import FRUIT_MIN_PIXELS, FRUIT_MIN_VISIBLE_FRACTION
 
 log = logging.getLogger(__name__)
 
@@ -79,9 +81,19 @@ class SplatVisibility:
         self.point_seen = np.zeros(len(row.points.xyz), bool)
         n_c = int(round(2 * LOCAL_GROUND_RADIUS_M / GROUND_CELL_M))
         self.cells = np.zeros((n, n_c, n_c), np.int32)
+        self.fruit_pos = np.array([f.position for f in row.fruit]).reshape(-1, 3)
+        self.fruit_r = np.array([f.radius for f in row.fruit])
+        self.fruit_seen = np.zeros(len(row.fruit), bool)
 
-    def add(self, f: SplatFrame) -> None:
+    def add(self, f: SplatFrame, T_world_cam: np.ndarray, K: CameraIntrinsics) -> None:
         cls, inst = f.cls.ravel(), f.inst.ravel()
+        if len(self.fruit_pos):  # visible pixels over the projected disc (the simulator's rule)
+            counts = np.bincount(inst[cls == PCls.FRUIT], minlength=len(self.fruit_pos))
+            Tcw = np.linalg.inv(T_world_cam)
+            z = self.fruit_pos @ Tcw[2, :3] + Tcw[2, 3]
+            area = np.pi * (K.fx * self.fruit_r / np.maximum(z, 1e-3)) ** 2
+            frac = np.where(z > 0.1, counts / area, 0.0)
+            self.fruit_seen |= (frac >= FRUIT_MIN_VISIBLE_FRACTION) & (counts >= FRUIT_MIN_PIXELS)
         idx = f.index.ravel()
         self.point_seen[idx[idx >= 0]] = True
         pts = f.points.reshape(-1, 3)
@@ -166,6 +178,18 @@ def _tree_truth(row: ScanRowScene, vis: dict[str, SplatVisibility], recorded: tu
         obs = {}
         for side in ("front", "back"):
             obs[side] = vis[side].summary(t, offset, foliage) if side in recorded else {}
+        fruit = []
+        fv = {"front": 0, "back": 0, "either": 0, "both": 0}
+        for gi, fr in enumerate(row.fruit):
+            if fr.tree != t.id:
+                continue
+            v = {side: bool(side in recorded and vis[side].fruit_seen[gi]) for side in ("front", "back")}
+            fruit.append({"id": gi, "position": np.round(fr.position, 5).tolist(), "radius_m": round(fr.radius, 5),
+                          "color": fr.color, "visible": v})
+            fv["front"] += v["front"]
+            fv["back"] += v["back"]
+            fv["either"] += v["front"] or v["back"]
+            fv["both"] += v["front"] and v["back"]
         out.append({
             "id": t.id,
             "position": np.round(t.base, 5).tolist(),
@@ -183,9 +207,9 @@ def _tree_truth(row: ScanRowScene, vis: dict[str, SplatVisibility], recorded: tu
                              "normal": np.round(t.ground_normal, 6).tolist()},
             "height_m": round(t.height, 4),
             "canopy_volume_m3": 0.0,
-            "fruit": [],
-            "fruit_count": 0,
-            "fruit_visible": {"front": 0, "back": 0, "either": 0, "both": 0},
+            "fruit": fruit,
+            "fruit_count": len(fruit),
+            "fruit_visible": fv,
             "observed": obs,
         })
         offset += len(t.points)
@@ -233,7 +257,7 @@ def generate_scan_row(out_dir: str | Path, *, seed: int = 0, spec: ScanRowSpec =
                 bag.write_camera_info(topics.camera_info, stamp, K)
                 bag.write_color(topics.color, stamp, color, encoding="rgb8", frame_id=K.frame_id)
                 bag.write_depth(topics.depth, stamp, depth, encoding="16UC1", frame_id=K.frame_id)
-                vis[side].add(f)
+                vis[side].add(f, p.poses[i], K)
                 if progress:
                     progress(side, i + 1, len(p.stamps))
         bags[side] = out / side

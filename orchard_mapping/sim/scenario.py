@@ -65,6 +65,10 @@ class FruitSpec(_S):
     per_tree: tuple[int, int] = (18, 40)
     radius_m: Range = (0.035, 0.045)
     red_fraction: float = Field(0.6, ge=0.0, le=1.0)
+    # plain: one saturated red or green per fruit (the standard look); varied: a ground colour from grass
+    # green to golden, a red to pink blush over part of each fruit, streaks and speckle, as real varieties
+    # show (Fuji, Gala, Golden): drawn from a stream of their own, so the scene's geometry does not change.
+    look: Literal["plain", "varied"] = "plain"
 
 
 class StructureSpec(_S):

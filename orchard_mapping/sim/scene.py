@@ -280,7 +280,7 @@ def build_scene(sc: Scenario, seed: int) -> Scene:
             tid = len(trees)
             shape_rng = np.random.default_rng([seed, _TRUNK_SHAPE_STREAM, tid])
             trees.append(_build_tree(mb, r_rng, sc, tid, np.array([xs[i], y0 + ys[i]]), terrain, fruits, sphere_v,
-                                     sphere_t, shape_rng))
+                                     sphere_t, shape_rng, seed))
         _posts_and_wires(mb, r_rng, sc, xs, y0, terrain, posts)
         _weeds(mb, r_rng, sc, float(xs[0]), float(xs[-1]), y0, terrain)
         rows.append(RowLine(k + 1, y0, (float(xs[0]), float(xs[-1])), tuple(range(first, len(trees)))))
@@ -408,6 +408,40 @@ def terrain_plane(terrain: Terrain, px: np.ndarray, py: np.ndarray, x: float, y:
 
 TRUNK_SEGMENTS = 20  # vertices around the trunk's cross-section
 _TRUNK_SHAPE_STREAM = 0x7472756E  # the trunks' cross-section draws (seed, this, tree)
+_FRUIT_LOOK_STREAM = 0x66727574  # the varied fruit look's draws (seed, this, fruit index)
+# Varied fruit look (FruitSpec.look): ground colours (grass green, yellow-green, golden) and blush colours
+# (deep red, red, pink-red, orange-red), albedo in [0, 1].
+_FRUIT_GROUND = np.array([[0.45, 0.68, 0.18], [0.62, 0.70, 0.24], [0.82, 0.74, 0.32]])
+_FRUIT_BLUSH = np.array([[0.50, 0.05, 0.05], [0.74, 0.11, 0.08], [0.78, 0.34, 0.30], [0.80, 0.30, 0.10]])
+
+
+def varied_fruit_albedo(rng: np.random.Generator, red: bool, sphere_v: np.ndarray, sphere_t: np.ndarray
+                        ) -> np.ndarray:
+    """(T, 3) per-triangle albedo of one fruit of the varied look: a ground colour, a blush over part of the
+    fruit (most of a red fruit, a faint cheek on some green ones) facing a random, mostly upward side, with a
+    soft edge, streaks along the meridians and speckle. The sphere's axis is the stem's (z)."""
+    c = sphere_v[sphere_t].mean(axis=1)  # (T, 3) triangle centres on the unit sphere
+    c /= np.linalg.norm(c, axis=1, keepdims=True)
+    w_g = rng.dirichlet(np.ones(len(_FRUIT_GROUND)))
+    ground = w_g @ _FRUIT_GROUND  # (3,)
+    w_b = rng.dirichlet(np.full(len(_FRUIT_BLUSH), 0.5))
+    blush = w_b @ _FRUIT_BLUSH
+    if red:
+        cover = rng.uniform(0.3, 1.0)  # share of the surface blushed
+    else:
+        cover = rng.uniform(0.0, 0.25) if rng.uniform() < 0.4 else 0.0
+    d = rng.standard_normal(3) + np.array([0.0, 0.0, 0.7])
+    d /= np.linalg.norm(d)
+    soft = rng.uniform(0.1, 0.4)
+    # the cap of the sphere whose area share is `cover` is the side where c . d > 1 - 2 cover
+    w = np.clip((c @ d - (1.0 - 2.0 * cover)) / soft * 0.5 + 0.5, 0.0, 1.0) * (cover > 0)
+    if rng.uniform() < 0.5:  # streaks: the blush broken along the meridians
+        lon = np.arctan2(c[:, 1], c[:, 0])
+        k = int(rng.integers(5, 12))
+        w = w * (1.0 - rng.uniform(0.2, 0.7) * (0.5 + 0.5 * np.sin(k * lon + rng.uniform(0, 2 * np.pi))))
+    alb = ground[None] * (1 - w[:, None]) + blush[None] * w[:, None]
+    alb = alb * rng.uniform(0.75, 1.15) * (1.0 + rng.normal(0.0, 0.04, (len(c), 1)))
+    return np.clip(alb, 0.0, 1.0)
 
 
 def trunk_radii(rng: np.random.Generator, tr: TrunkSpec, s: np.ndarray, r_mean: np.ndarray, segments: int
@@ -436,7 +470,7 @@ def trunk_radii(rng: np.random.Generator, tr: TrunkSpec, s: np.ndarray, r_mean: 
 
 def _build_tree(mb: MeshBuilder, rng: np.random.Generator, sc: Scenario, tid: int, xy: np.ndarray,
                 terrain: Terrain, fruits: list[Fruit], sphere_v: np.ndarray, sphere_t: np.ndarray,
-                shape_rng: np.random.Generator) -> TreeGeom:
+                shape_rng: np.random.Generator, seed: int) -> TreeGeom:
     tr, cp, fr = sc.trunk, sc.canopy, sc.fruit
     gp, gn = local_ground_plane(terrain, float(xy[0]), float(xy[1]))
     base = np.array([xy[0], xy[1], float(terrain.height(xy[0], xy[1]))])
@@ -560,6 +594,8 @@ def _build_tree(mb: MeshBuilder, rng: np.random.Generator, sc: Scenario, tid: in
         color = np.array([0.72, 0.09, 0.07]) if red else np.array([0.5, 0.72, 0.2])
         color = color * rng.uniform(0.85, 1.1)
         gi = len(fruits)
+        if fr.look == "varied":
+            color = varied_fruit_albedo(np.random.default_rng([seed, _FRUIT_LOOK_STREAM, gi]), red, sphere_v, sphere_t)
         mb.add(centre + rf * sphere_v, sphere_t, Cls.FRUIT, gi, color, sway=0.7)
         fruits.append(Fruit(tid, centre, float(rf), "red" if red else "green"))
         f_idx.append(gi)

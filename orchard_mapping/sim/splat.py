@@ -39,6 +39,7 @@ class PCls(IntEnum):
     FOLIAGE = 3
     POST = 4
     WIRE = 5
+    FRUIT = 6  # inst: the fruit's index in the row's fruit list
 
 
 @dataclass
@@ -50,7 +51,7 @@ class PointScene:
     albedo: np.ndarray  # (N, 3) float32 linear reflectance in [0, 1]
     normal: np.ndarray  # (N, 3) float32 unit (sign free for foliage)
     cls: np.ndarray  # (N,) uint8 PCls
-    inst: np.ndarray  # (N,) int32 tree id (trunk, foliage), post index, else -1
+    inst: np.ndarray  # (N,) int32 tree id (trunk, foliage), post index, fruit index, else -1
 
     def __post_init__(self) -> None:
         n = len(self.xyz)

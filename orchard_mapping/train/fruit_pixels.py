@@ -48,9 +48,11 @@ class LabelledFrame:
     visible_fraction: np.ndarray
 
 
-def scene_overrides(seed: int, red_fraction: float | None, randomise: bool, trees: int) -> dict[str, Any]:
+def scene_overrides(seed: int, red_fraction: float | None, randomise: bool, trees: int,
+                    fruit_look: str = "plain") -> dict[str, Any]:
     """Scenario overrides of one scene: random_domain's look when `randomise` (sun, shade, colours, camera),
-    the colour mix `red_fraction` (None: drawn from RED_FRACTIONS or uniform, per scene)."""
+    the colour mix `red_fraction` (None: drawn from RED_FRACTIONS or uniform, per scene), the fruit's look
+    (`fruit.look`: plain or varied)."""
     from orchard_mapping.sim.domain import random_domain
 
     rng = np.random.default_rng([SEED_TAG, seed])
@@ -59,18 +61,21 @@ def scene_overrides(seed: int, red_fraction: float | None, randomise: bool, tree
         k = int(rng.integers(len(RED_FRACTIONS) + 1))
         red_fraction = float(RED_FRACTIONS[k]) if k < len(RED_FRACTIONS) else float(rng.uniform())
     over.update({"row.n_trees": trees, "camera.rate_hz": 2.0, "fruit.red_fraction": red_fraction,
-                 "masks_every": 0})
+                 "fruit.look": fruit_look, "masks_every": 0})
     return over
 
 
 def scene_frames(seed: int, *, red_fraction: float | None = None, randomise: bool = True, trees: int = 2,
-                 frames_per_side: int = 4, scenario: str = "standard") -> list[LabelledFrame]:
+                 frames_per_side: int = 4, scenario: str = "standard", fruit_look: str | None = None
+                 ) -> list[LabelledFrame]:
     """`frames_per_side` frames evenly spread over each side's path (both sweeps) of one simulated row."""
     from orchard_mapping.sim.scenario import load_scenario
     from orchard_mapping.sim.scene import Cls
     from orchard_mapping.sim.simulate import Rig
 
-    sc = load_scenario(scenario, scene_overrides(seed, red_fraction, randomise, trees))
+    if fruit_look is None:
+        fruit_look = varied_look(seed, randomise)
+    sc = load_scenario(scenario, scene_overrides(seed, red_fraction, randomise, trees, fruit_look))
     rig = Rig.build(sc, seed)
     out: list[LabelledFrame] = []
     centres = np.array([f.position for f in rig.scene.fruit]).reshape(-1, 3)  # (F, 3) world
@@ -91,6 +96,13 @@ def scene_frames(seed: int, *, red_fraction: float | None = None, randomise: boo
             frac = np.concatenate([[0.0], np.where(z > 0, seen, 0.0)])
             out.append(LabelledFrame(color, inst, seed, int(i), side, frac))
     return out
+
+
+def varied_look(seed: int, randomise: bool) -> str:
+    """The fruit look of a training or validation scene: the randomised-look scenes of odd seeds have the
+    varied fruit (blush, streaks, golden and pink varieties), the others the plain red and green; the
+    standard-look scenes always the plain."""
+    return "varied" if randomise and seed % 2 else "plain"
 
 
 def frames_for(seeds: tuple[int, ...], **kw: Any) -> list[LabelledFrame]:
@@ -140,13 +152,14 @@ def fit_gmm(frames: list[LabelledFrame], space: str, components: tuple[int, int]
 
 
 def fit_net(frames: list[LabelledFrame], *, iterations: int = 2000, crop: int = 128, batch: int = 12,
-            seed: int = 0, threads: int = 2, log=print) -> Any:
+            seed: int = 0, threads: int = 2, scale: tuple[float, float] | None = (0.7, 1.6), log=print) -> Any:
     """A small fully convolutional network (torch, training extra) on RGB crops; returns the torch module.
 
     Half-resolution trunk (a stride-2 convolution, then dilated 3 x 3 convolutions of dilation 1, 2, 4, 8: a
     receptive field of about 66 px), a 1 x 1 logit and a bilinear upsampling back to full resolution. Crops
     get flips and colour jitter (exposure, per-channel gain, saturation) so the net cannot lean on one
-    look's exact colours."""
+    look's exact colours, and a random scale (`scale`: None for none)."""
+    import cv2
     import torch
     from torch import nn
 
@@ -165,15 +178,22 @@ def fit_net(frames: list[LabelledFrame], *, iterations: int = 2000, crop: int = 
             # half the crops centred on fruit when the frame has some: fruit is 1-3 % of the pixels
             f = frames[int(rng.choice(fruit_frames)) if rng.uniform() < 0.7 else int(rng.integers(len(frames)))]
             h, w = f.instances.shape
+            # scale: fruit from 0.7x to 1.6x the pixels they have at the simulator's range (a nearer camera, a
+            # longer lens); the crop taken at crop / scale px and resized to crop
+            s = float(np.exp(rng.uniform(np.log(scale[0]), np.log(scale[1])))) if scale else 1.0
+            c = min(int(round(crop / s)), h, w)
             yx = np.argwhere(f.instances > 0)
             if len(yx) and rng.uniform() < 0.5:
                 cy, cx = yx[rng.integers(len(yx))]
-                y0 = int(np.clip(cy - rng.integers(crop), 0, h - crop))
-                x0 = int(np.clip(cx - rng.integers(crop), 0, w - crop))
+                y0 = int(np.clip(cy - rng.integers(c), 0, h - c))
+                x0 = int(np.clip(cx - rng.integers(c), 0, w - c))
             else:
-                y0, x0 = int(rng.integers(h - crop + 1)), int(rng.integers(w - crop + 1))
-            img = f.rgb[y0:y0 + crop, x0:x0 + crop].astype(np.float32) / 255.0
-            lab = (f.instances[y0:y0 + crop, x0:x0 + crop] > 0).astype(np.float32)
+                y0, x0 = int(rng.integers(h - c + 1)), int(rng.integers(w - c + 1))
+            img = f.rgb[y0:y0 + c, x0:x0 + c].astype(np.float32) / 255.0
+            lab = (f.instances[y0:y0 + c, x0:x0 + c] > 0).astype(np.float32)
+            if c != crop:
+                img = cv2.resize(img, (crop, crop), interpolation=cv2.INTER_AREA if c > crop else cv2.INTER_LINEAR)
+                lab = (cv2.resize(lab, (crop, crop), interpolation=cv2.INTER_LINEAR) >= 0.5).astype(np.float32)
             if rng.uniform() < 0.5:
                 img, lab = img[:, ::-1], lab[:, ::-1]
             grey = img.mean(2, keepdims=True)
@@ -269,6 +289,8 @@ def main(argv: list[str] | None = None) -> None:
     ap.add_argument("--components", type=int, nargs=2, default=list(fp.DEFAULT_GMM_COMPONENTS))
     ap.add_argument("--iterations", type=int, default=2000, help="network training iterations")
     ap.add_argument("--only", choices=["gmm", "net"], default=None)
+    ap.add_argument("--scale", type=float, nargs=2, default=[0.7, 1.6], metavar=("LO", "HI"),
+                    help="network crops rescaled by a factor drawn in [LO, HI] (1 1: none)")
     a = ap.parse_args(argv)
     t0 = time.perf_counter()
     train, val = training_frames(a.scenes, a.frames)
@@ -277,7 +299,8 @@ def main(argv: list[str] | None = None) -> None:
     meta = {"train_seeds": list(TRAIN_SEEDS[: a.scenes]), "train_standard_seeds":
             list(TRAIN_STANDARD_SEEDS[: max(1, a.scenes // 2)]), "validation_seeds": list(VALIDATION_SEEDS),
             "validation_standard_seeds": list(VALIDATION_STANDARD_SEEDS),
-            "frames_per_side": a.frames, "seed_tag": SEED_TAG, "trees": 2}
+            "frames_per_side": a.frames, "seed_tag": SEED_TAG, "trees": 2,
+            "fruit_look": "varied on the odd randomised-look seeds, plain on the others"}
     if a.only in (None, "gmm"):
         gmm = fit_gmm(train, a.space, tuple(a.components))
         th, f1 = best_threshold(gmm, val)
@@ -285,9 +308,10 @@ def main(argv: list[str] | None = None) -> None:
         fp.save_model(gmm, out / "fruit_colour_gmm.json", {**meta, "validation_pixel_f1": round(f1, 4)})
         print(f"GMM {a.space} {a.components}: threshold {th:.3f}, validation pixel F1 {f1:.4f}")
     if a.only in (None, "net"):
-        net = fit_net(train, iterations=a.iterations)
+        scale = tuple(a.scale) if a.scale != [1.0, 1.0] else None
+        net = fit_net(train, iterations=a.iterations, scale=scale)
         th, f1 = best_threshold(_TorchScores(net), val)
-        export_net(net, out / "fruit_net.onnx", th, {**meta, "iterations": a.iterations,
+        export_net(net, out / "fruit_net.onnx", th, {**meta, "iterations": a.iterations, "scale": scale,
                                                      "validation_pixel_f1": round(f1, 4)})
         print(f"network: threshold {th:.3f}, validation pixel F1 {f1:.4f}")
     print(json.dumps({"seconds": round(time.perf_counter() - t0, 1)}))

@@ -65,3 +65,34 @@ def test_a_row_with_fewer_fruit_than_trees_is_simulated(tmp_path):
     sim = simulate(load_scenario("standard", over), 3, tmp_path / "row")
     truth = json.loads((sim.out_dir / "ground_truth.json").read_text())
     assert len(truth["trees"]) == 3 and sum(len(t["fruit"]) for t in truth["trees"]) <= 3
+
+
+def test_the_varied_fruit_look_changes_the_fruit_colours_and_nothing_else():
+    """fruit.look: varied draws the fruit's colours from a stream of its own: the scene's geometry, classes,
+    fruit and every other triangle's colour stay those of the plain look; the fruit get a ground colour and a
+    blush (red fruit mostly blushed, green fruit mostly not), and two fruit are never one colour."""
+    from orchard_mapping.sim.scene import Cls, build_scene
+
+    for seed in (3, 8):
+        over = {"row.n_trees": 2, "fruit.red_fraction": 0.6}
+        plain = build_scene(load_scenario("standard", over), seed)
+        varied = build_scene(load_scenario("standard", over | {"fruit.look": "varied"}), seed)
+        assert np.array_equal(plain.vertices, varied.vertices)
+        assert np.array_equal(plain.tri_cls, varied.tri_cls) and np.array_equal(plain.tri_inst, varied.tri_inst)
+        assert [(f.position.tolist(), f.radius, f.color) for f in plain.fruit] == \
+            [(f.position.tolist(), f.radius, f.color) for f in varied.fruit]
+        fruit = plain.tri_cls == Cls.FRUIT
+        assert fruit.sum() > 1000
+        assert np.array_equal(plain.tri_albedo[~fruit], varied.tri_albedo[~fruit])
+        alb = varied.tri_albedo[fruit]  # (T, 3)
+        inst = varied.tri_inst[fruit]
+        redness = alb[:, 0] - alb[:, 1]  # > 0 blushed, < 0 green or golden ground
+        per_fruit = {k: redness[inst == k] for k in np.unique(inst)}
+        red = [varied.fruit[k].color == "red" for k in per_fruit]
+        blushed = np.array([(r > 0.15).mean() for r in per_fruit.values()])
+        assert np.mean(blushed[red]) > 0.4 and np.mean(blushed[~np.array(red)]) < 0.15
+        assert np.mean([(r > 0.15).any() and (r < 0.0).any() for r in per_fruit.values()]) > 0.3  # two-tone fruit
+        means = np.array([alb[inst == k].mean(axis=0) for k in per_fruit])
+        assert len(np.unique(means.round(3), axis=0)) == len(means)
+        # the plain look: one colour per fruit, saturated red or green
+        assert all(len(np.unique(plain.tri_albedo[fruit][plain.tri_inst[fruit] == k], axis=0)) == 1 for k in per_fruit)

@@ -11,7 +11,14 @@ import pytest
 
 from orchard_mapping.core.types import CameraIntrinsics
 from orchard_mapping.io.bags import read_rgbd
-from orchard_mapping.sim.scan_row_scene import ScanDataError, ScanRowSpec, fit_circle, load_scan_trees, trunk_slices
+from orchard_mapping.sim.scan_row_scene import (
+    ScanDataError,
+    ScanRowSpec,
+    build_scan_row,
+    fit_circle,
+    load_scan_trees,
+    trunk_slices,
+)
 from orchard_mapping.sim.scan_rows import generate_scan_row
 from orchard_mapping.sim.splat import PCls, PointScene, SplatRenderer, StereoSensor
 
@@ -140,3 +147,45 @@ def test_tiny_scan_row_writes_readable_bags(tmp_path):
         assert frame.color.shape == (120, 160, 3) and frame.depth.shape == (120, 160)
         assert (frame.depth > 0).mean() > 0.2
         assert seq.intrinsics.fx == pytest.approx(152.0)
+
+
+def test_fruit_in_a_scan_row_hang_in_the_crowns_and_are_seen(tmp_path):
+    """ScanRowSpec.fruit_per_tree hangs fruit in the crowns' outer shell: inside the tree's height, above its
+    clear trunk, none interpenetrating; the truth lists each with its visibility per side and the counts add
+    up; the fruit draws leave the rest of the row as it was without fruit (trees, trunk truth, ground)."""
+    data = tmp_path / "scans" / "synthetic"
+    data.mkdir(parents=True)
+    rng = np.random.default_rng(0)
+    for k, r in enumerate((0.18, 0.22)):
+        np.savez_compressed(data / f"tree{k}.npz", **_synthetic_scan(rng, r))
+    spec = ScanRowSpec(n_trees=2, rate_hz=1.0, width=160, height=120, fx=152.0, fy=152.0, cx=80.0, cy=60.0,
+                       background_row_m=0.0, ground_spacing_m=0.04, margin_m=0.5)
+    trees = load_scan_trees(tmp_path / "scans")
+    plain = build_scan_row(1, spec, trees)
+    fruity = build_scan_row(1, replace(spec, fruit_per_tree=(8, 12)), trees)
+    assert not plain.fruit and 16 <= len(fruity.fruit) <= 24
+    for a, b in zip(plain.trees, fruity.trees, strict=True):
+        assert np.array_equal(a.base, b.base) and a.height == b.height and np.array_equal(a.slices.radii, b.slices.radii)
+        assert len(b.points) < len(a.points)  # the crown's points inside a fruit went
+    pos = np.array([f.position for f in fruity.fruit])
+    rad = np.array([f.radius for f in fruity.fruit])
+    gap = np.linalg.norm(pos[:, None] - pos[None], axis=2) - rad[:, None] - rad[None]
+    assert gap[~np.eye(len(rad), dtype=bool)].min() > 0.004
+    for f in fruity.fruit:
+        t = fruity.trees[f.tree]
+        h = (f.position - t.ground_point) @ t.ground_normal
+        assert t.clear_height < h < t.height and 0.033 <= f.radius <= 0.045
+    on = fruity.points.cls == PCls.FRUIT
+    assert set(np.unique(fruity.points.inst[on])) == set(range(len(fruity.fruit)))
+
+    res = generate_scan_row(tmp_path / "row", seed=1, spec=replace(spec, fruit_per_tree=(8, 12)),
+                            data_dir=tmp_path / "scans")
+    truth = json.loads(res.truth_path.read_text())
+    listed = [f for t in truth["trees"] for f in t["fruit"]]
+    assert len(listed) == len(fruity.fruit)
+    for t in truth["trees"]:
+        v = t["fruit_visible"]
+        assert t["fruit_count"] == len(t["fruit"])
+        assert v["either"] == sum(f["visible"]["front"] or f["visible"]["back"] for f in t["fruit"])
+        assert v["both"] <= min(v["front"], v["back"]) <= max(v["front"], v["back"]) <= v["either"]
+    assert sum(t["fruit_visible"]["either"] for t in truth["trees"]) >= len(listed) // 3  # crowns' outer shell
