@@ -3,6 +3,7 @@
     .venv/bin/python benchmarks/fruit_rows.py [--rows standard:51] [--sources masks model] [--trees 10]
         [--workdir DIR (default: the system temporary folder/traits_rows)] [--json out.json]
         [--sim-set fruit.red_fraction=0 ...]  (scenario overrides of every row: a colour mix)
+        [--set fruit.model=FILE ...]  (configuration overrides of the product)
 
 Per row it reuses (or makes, as benchmarks/traits_rows.py does) each side's reconstruction, then runs the fruit
 stage on the side's keyframes (pipeline.fruit.FruitTap over the bag's keyframe images, with the side map's
@@ -25,7 +26,7 @@ from pathlib import Path
 import numpy as np
 import yaml
 
-from orchard_mapping.config import load_config
+from orchard_mapping.config import load_config, parse_sets, unflatten
 from orchard_mapping.core.fruit import inclusion_exclusion_count
 from orchard_mapping.eval.evaluate import evaluate_result
 from orchard_mapping.eval.ground_truth import load_ground_truth
@@ -57,6 +58,8 @@ def main() -> None:
     ap.add_argument("--json", type=Path, default=None)
     ap.add_argument("--sim-set", action="append", default=[], metavar="KEY=VALUE",
                     help="scenario override for every row, e.g. fruit.red_fraction=0 (green fruit only)")
+    ap.add_argument("--set", action="append", default=[], metavar="KEY=VALUE",
+                    help="configuration override, e.g. fruit.model=my_model.onnx")
     a = ap.parse_args()
     rows = []
     print("| row | source | visible / all | front | back | naive sum | incl.-excl. | ours | ours vs visible % "
@@ -72,7 +75,7 @@ def main() -> None:
         visible = sum(t.fruit_visible["either"] for t in gt.trees)
         total = sum(t.fruit_count for t in gt.trees)
         for source in a.sources:
-            base = load_config()
+            base = load_config(None, unflatten(parse_sets(a.set)) if a.set else None)
             cfg = base.model_copy(update={"fruit": dataclasses.replace(
                 base.fruit, enabled=True, source=source, masks_dir=str(sim / "masks"))})
             fmaps, secs = _with_fruit(sim, maps, cfg)

@@ -5,10 +5,11 @@ train-setup`); the runtime reads the model files with `orchard_mapping.core.frui
 split three ways, never mixed:
 
   training     TRAIN_SEEDS: domain-randomised scenes (orchard_mapping.sim.domain.random_domain: sun, shade,
-               colours, camera), TRAIN_STANDARD_SEEDS: the standard scenario's look; each scene with its own
-               colour mix drawn from RED_FRACTIONS (or uniform)
-  validation   VALIDATION_SEEDS, VALIDATION_STANDARD_SEEDS: the same draws, used for every choice (colour
-               space, components, thresholds, network, instance splitting)
+               colours, camera), TRAIN_VARIED_SEEDS: the same with the varied fruit look (`fruit.look: varied`:
+               blush, streaks, golden and pink varieties), TRAIN_STANDARD_SEEDS: the standard scenario's look;
+               each scene with its own colour mix drawn from RED_FRACTIONS (or uniform)
+  validation   VALIDATION_SEEDS, VALIDATION_VARIED_SEEDS, VALIDATION_STANDARD_SEEDS: the same draws, used for
+               every choice (colour space, components, thresholds, network, instance splitting)
   held out     HELDOUT_SEEDS (benchmarks/fruit_pixels.py, test/unit/core/test_fruit_pixels.py): scored only
 
 Usage (re-makes models/fruit_colour_gmm.json and models/fruit_net.onnx):
@@ -30,8 +31,10 @@ from orchard_mapping.core import fruit_pixels as fp
 
 TRAIN_SEEDS = tuple(range(0, 24))  # randomised look
 TRAIN_STANDARD_SEEDS = tuple(range(100, 112))  # the standard scenario's look
+TRAIN_VARIED_SEEDS = tuple(range(200, 224))  # randomised look, varied fruit
 VALIDATION_SEEDS = tuple(range(500, 506))  # randomised look
 VALIDATION_STANDARD_SEEDS = tuple(range(600, 603))
+VALIDATION_VARIED_SEEDS = tuple(range(700, 706))
 HELDOUT_SEEDS = tuple(range(1000, 1004))  # both looks, each colour mix
 RED_FRACTIONS = (1.0, 0.0, 0.6)  # the three colour mixes scored: red, green, mixed
 SEED_TAG = 7  # random_domain's generator: default_rng([SEED_TAG, seed])
@@ -66,15 +69,13 @@ def scene_overrides(seed: int, red_fraction: float | None, randomise: bool, tree
 
 
 def scene_frames(seed: int, *, red_fraction: float | None = None, randomise: bool = True, trees: int = 2,
-                 frames_per_side: int = 4, scenario: str = "standard", fruit_look: str | None = None
+                 frames_per_side: int = 4, scenario: str = "standard", fruit_look: str = "plain"
                  ) -> list[LabelledFrame]:
     """`frames_per_side` frames evenly spread over each side's path (both sweeps) of one simulated row."""
     from orchard_mapping.sim.scenario import load_scenario
     from orchard_mapping.sim.scene import Cls
     from orchard_mapping.sim.simulate import Rig
 
-    if fruit_look is None:
-        fruit_look = varied_look(seed, randomise)
     sc = load_scenario(scenario, scene_overrides(seed, red_fraction, randomise, trees, fruit_look))
     rig = Rig.build(sc, seed)
     out: list[LabelledFrame] = []
@@ -98,23 +99,19 @@ def scene_frames(seed: int, *, red_fraction: float | None = None, randomise: boo
     return out
 
 
-def varied_look(seed: int, randomise: bool) -> str:
-    """The fruit look of a training or validation scene: the randomised-look scenes of odd seeds have the
-    varied fruit (blush, streaks, golden and pink varieties), the others the plain red and green; the
-    standard-look scenes always the plain."""
-    return "varied" if randomise and seed % 2 else "plain"
-
-
 def frames_for(seeds: tuple[int, ...], **kw: Any) -> list[LabelledFrame]:
     return [f for s in seeds for f in scene_frames(s, **kw)]
 
 
 def training_frames(scenes: int, frames_per_side: int) -> tuple[list[LabelledFrame], list[LabelledFrame]]:
-    """(training, validation) frames: randomised-look scenes, then standard-look ones (half as many)."""
+    """(training, validation) frames: randomised-look scenes, as many with the varied fruit, then standard-look
+    ones (half as many)."""
     std = TRAIN_STANDARD_SEEDS[: max(1, scenes // 2)]
     train = frames_for(TRAIN_SEEDS[:scenes], frames_per_side=frames_per_side)
+    train += frames_for(TRAIN_VARIED_SEEDS[:scenes], frames_per_side=frames_per_side, fruit_look="varied")
     train += frames_for(std, frames_per_side=frames_per_side, randomise=False)
     val = frames_for(VALIDATION_SEEDS, frames_per_side=frames_per_side)
+    val += frames_for(VALIDATION_VARIED_SEEDS, frames_per_side=frames_per_side, fruit_look="varied")
     val += frames_for(VALIDATION_STANDARD_SEEDS, frames_per_side=frames_per_side, randomise=False)
     return train, val
 
@@ -151,14 +148,46 @@ def fit_gmm(frames: list[LabelledFrame], space: str, components: tuple[int, int]
     return fp.ColourGmm(space=space, fruit=parts[0], other=parts[1], threshold=0.0)
 
 
+def photometric_jitter(img: np.ndarray, rng: np.random.Generator, jitter: str = "wide") -> np.ndarray:
+    """img (H, W, 3) float32 in [0, 1], jittered as another camera and light would show it; float32 in [0, 1].
+
+    narrow: saturation 0.8-1.2, exposure 0.7-1.3, white balance +-8 %. wide (chosen before any measurement on
+    an unseen domain, from what cameras and orchards vary): saturation 0.35-1.3 (a tone curve or haze washes
+    colours out; the simulator's fruit are saturated), contrast 0.6-1.25, gamma 0.6-1.6, exposure 0.6-1.4,
+    white balance +-15 %, a hue turn of up to 12 deg (fruit and leaves stay apart by hue), blur up to 1.5 px
+    on a third of the crops and sensor noise up to 3 %."""
+    import cv2
+
+    if jitter == "narrow":
+        grey = img.mean(2, keepdims=True)
+        img = grey + (img - grey) * np.float32(rng.uniform(0.8, 1.2))  # saturation
+        img = img * np.float32(rng.uniform(0.7, 1.3)) * rng.uniform(0.92, 1.08, 3).astype(np.float32)  # exposure, WB
+        return np.clip(img, 0, 1).astype(np.float32)
+    a = np.radians(rng.uniform(-12, 12))  # hue turn about the grey axis (Rodrigues, unit axis (1, 1, 1) / sqrt 3)
+    k = np.full((3, 3), (1 - np.cos(a)) / 3) + np.cos(a) * np.eye(3)
+    k += np.sin(a) / np.sqrt(3) * np.array([[0, -1, 1], [1, 0, -1], [-1, 1, 0]])
+    img = img @ k.T.astype(np.float32)
+    grey = img.mean(2, keepdims=True)
+    img = grey + (img - grey) * np.float32(np.exp(rng.uniform(np.log(0.35), np.log(1.3))))  # saturation
+    m = img.mean()
+    img = m + (img - m) * np.float32(rng.uniform(0.6, 1.25))  # contrast
+    img = np.clip(img, 0, 1) ** np.float32(np.exp(rng.uniform(np.log(0.6), np.log(1.6))))  # gamma
+    img = img * np.float32(rng.uniform(0.6, 1.4)) * rng.uniform(0.85, 1.15, 3).astype(np.float32)  # exposure, WB
+    if rng.uniform() < 1 / 3:
+        img = cv2.GaussianBlur(img, (0, 0), rng.uniform(0.5, 1.5))
+    img = img + rng.normal(0, rng.uniform(0, 0.03), img.shape).astype(np.float32)
+    return np.clip(img, 0, 1).astype(np.float32)
+
+
 def fit_net(frames: list[LabelledFrame], *, iterations: int = 2000, crop: int = 128, batch: int = 12,
-            seed: int = 0, threads: int = 2, scale: tuple[float, float] | None = (0.7, 1.6), log=print) -> Any:
+            seed: int = 0, threads: int = 2, scale: tuple[float, float] | None = (0.7, 1.6), jitter: str = "wide",
+            arch: str = "unet", log=print) -> Any:
     """A small fully convolutional network (torch, training extra) on RGB crops; returns the torch module.
 
     Half-resolution trunk (a stride-2 convolution, then dilated 3 x 3 convolutions of dilation 1, 2, 4, 8: a
     receptive field of about 66 px), a 1 x 1 logit and a bilinear upsampling back to full resolution. Crops
     get flips and colour jitter (exposure, per-channel gain, saturation) so the net cannot lean on one
-    look's exact colours, and a random scale (`scale`: None for none)."""
+    look's exact colours (`photometric_jitter`), and a random scale (`scale`: None for none)."""
     import cv2
     import torch
     from torch import nn
@@ -166,7 +195,7 @@ def fit_net(frames: list[LabelledFrame], *, iterations: int = 2000, crop: int = 
     torch.manual_seed(seed)
     torch.set_num_threads(threads)
     rng = np.random.default_rng(seed)
-    net = FruitNet()
+    net = FruitUNet() if arch == "unet" else FruitNet()
     opt = torch.optim.Adam(net.parameters(), lr=3e-3)
     sched = torch.optim.lr_scheduler.OneCycleLR(opt, max_lr=3e-3, total_steps=iterations, pct_start=0.1)
     loss_fn = nn.BCEWithLogitsLoss()
@@ -196,10 +225,8 @@ def fit_net(frames: list[LabelledFrame], *, iterations: int = 2000, crop: int = 
                 lab = (cv2.resize(lab, (crop, crop), interpolation=cv2.INTER_LINEAR) >= 0.5).astype(np.float32)
             if rng.uniform() < 0.5:
                 img, lab = img[:, ::-1], lab[:, ::-1]
-            grey = img.mean(2, keepdims=True)
-            img = grey + (img - grey) * np.float32(rng.uniform(0.8, 1.2))  # saturation
-            img = img * np.float32(rng.uniform(0.7, 1.3)) * rng.uniform(0.92, 1.08, 3).astype(np.float32)  # exposure, WB
-            xs.append(np.clip(img, 0, 1).astype(np.float32).transpose(2, 0, 1))
+            img = photometric_jitter(np.ascontiguousarray(img), rng, jitter)
+            xs.append(img.transpose(2, 0, 1))
             ys.append(lab[None])
         x = torch.from_numpy(np.ascontiguousarray(np.stack(xs)))
         y = torch.from_numpy(np.ascontiguousarray(np.stack(ys)))
@@ -234,6 +261,41 @@ def FruitNet() -> Any:  # noqa: N802 (a factory standing for a class: torch is i
             return nn.functional.interpolate(y, size=x.shape[-2:], mode="bilinear", align_corners=False)
 
     return _Net()
+
+
+def FruitUNet() -> Any:  # noqa: N802 (a factory standing for a class: torch is imported only here)
+    """A small encoder-decoder: three stride-2 stages (16, 32, 64 channels), dilated 3 x 3 convolutions
+    (1, 2, 4) at 1/8 resolution (about 230 px seen round each pixel: a fruit's round outline and the leaves
+    round it, not only its colour), decoded back to 1/2 resolution with the encoder's features (skips), a
+    logit upsampled to full resolution. About the multiply-adds of FruitNet per pixel."""
+    import torch
+    from torch import nn
+
+    def conv(i: int, o: int, stride: int = 1, dilation: int = 1) -> list[Any]:
+        return [nn.Conv2d(i, o, 3, stride=stride, padding=dilation, dilation=dilation, bias=False),
+                nn.BatchNorm2d(o), nn.ReLU()]
+
+    class _UNet(nn.Module):
+        def __init__(self) -> None:
+            super().__init__()
+            self.e1 = nn.Sequential(*conv(3, 16, 2), *conv(16, 16))
+            self.e2 = nn.Sequential(*conv(16, 32, 2), *conv(32, 32))
+            self.e3 = nn.Sequential(*conv(32, 64, 2), *conv(64, 64), *conv(64, 64, dilation=2),
+                                    *conv(64, 64, dilation=4))
+            self.d2 = nn.Sequential(*conv(96, 32))
+            self.d1 = nn.Sequential(*conv(48, 16))
+            self.head = nn.Conv2d(16, 1, 1)
+
+        def forward(self, x: torch.Tensor) -> torch.Tensor:
+            up = nn.functional.interpolate
+            a = self.e1(x)
+            b = self.e2(a)
+            c = self.e3(b)
+            b = self.d2(torch.cat([up(c, size=b.shape[-2:], mode="bilinear", align_corners=False), b], 1))
+            a = self.d1(torch.cat([up(b, size=a.shape[-2:], mode="bilinear", align_corners=False), a], 1))
+            return up(self.head(a), size=x.shape[-2:], mode="bilinear", align_corners=False)
+
+    return _UNet()
 
 
 def export_net(net: Any, path: Path, threshold: float, meta: dict[str, Any]) -> Path:
@@ -291,6 +353,9 @@ def main(argv: list[str] | None = None) -> None:
     ap.add_argument("--only", choices=["gmm", "net"], default=None)
     ap.add_argument("--scale", type=float, nargs=2, default=[0.7, 1.6], metavar=("LO", "HI"),
                     help="network crops rescaled by a factor drawn in [LO, HI] (1 1: none)")
+    ap.add_argument("--jitter", choices=["narrow", "wide"], default="wide", help="photometric jitter of the crops")
+    ap.add_argument("--arch", choices=["unet", "dilated"], default="unet",
+                    help="network: FruitUNet or the earlier FruitNet (dilated convolutions at 1/2 resolution)")
     a = ap.parse_args(argv)
     t0 = time.perf_counter()
     train, val = training_frames(a.scenes, a.frames)
@@ -300,7 +365,8 @@ def main(argv: list[str] | None = None) -> None:
             list(TRAIN_STANDARD_SEEDS[: max(1, a.scenes // 2)]), "validation_seeds": list(VALIDATION_SEEDS),
             "validation_standard_seeds": list(VALIDATION_STANDARD_SEEDS),
             "frames_per_side": a.frames, "seed_tag": SEED_TAG, "trees": 2,
-            "fruit_look": "varied on the odd randomised-look seeds, plain on the others"}
+            "train_varied_seeds": list(TRAIN_VARIED_SEEDS[: a.scenes]),
+            "validation_varied_seeds": list(VALIDATION_VARIED_SEEDS)}
     if a.only in (None, "gmm"):
         gmm = fit_gmm(train, a.space, tuple(a.components))
         th, f1 = best_threshold(gmm, val)
@@ -309,9 +375,9 @@ def main(argv: list[str] | None = None) -> None:
         print(f"GMM {a.space} {a.components}: threshold {th:.3f}, validation pixel F1 {f1:.4f}")
     if a.only in (None, "net"):
         scale = tuple(a.scale) if a.scale != [1.0, 1.0] else None
-        net = fit_net(train, iterations=a.iterations, scale=scale)
+        net = fit_net(train, iterations=a.iterations, scale=scale, jitter=a.jitter, arch=a.arch)
         th, f1 = best_threshold(_TorchScores(net), val)
-        export_net(net, out / "fruit_net.onnx", th, {**meta, "iterations": a.iterations, "scale": scale,
+        export_net(net, out / "fruit_net.onnx", th, {**meta, "iterations": a.iterations, "scale": scale, "jitter": a.jitter, "arch": a.arch,
                                                      "validation_pixel_f1": round(f1, 4)})
         print(f"network: threshold {th:.3f}, validation pixel F1 {f1:.4f}")
     print(json.dumps({"seconds": round(time.perf_counter() - t0, 1)}))
