@@ -33,8 +33,18 @@ def _pixel_f1(model: fp.FruitPixelModel, frames: list[tf.LabelledFrame]) -> floa
 def test_network_pixel_f1_on_held_out_frames(frames):
     assert sum(int((f.instances > 0).sum()) for f in frames) > 2000, "the frames must show fruit"
     f1 = _pixel_f1(fp.load_model(NET), frames)
-    # 0.79 on these four frames, 0.81 over the benchmark's held-out standard-look mixed rows (docs/fruit.md)
-    assert f1 > 0.7, f1
+    # 0.84 on these four frames, 0.85 over the benchmark's held-out standard-look mixed rows (docs/fruit.md)
+    assert f1 > 0.75, f1
+
+
+def test_network_finds_fruit_of_other_varieties_where_colour_alone_does_not():
+    """Held-out frames of the randomised look with the varied fruit (blush over a green to golden ground,
+    streaks): the network 0.85 on these four frames, the colour GMM 0.34 (fitted on saturated red and green)."""
+    frames = tf.scene_frames(tf.HELDOUT_SEEDS[1], red_fraction=0.6, randomise=True, frames_per_side=2,
+                             fruit_look="varied")
+    assert sum(int((f.instances > 0).sum()) for f in frames) > 2000, "the frames must show fruit"
+    net, gmm = _pixel_f1(fp.load_model(NET), frames), _pixel_f1(fp.load_model(GMM), frames)
+    assert net > 0.75 and net > gmm + 0.3, (net, gmm)
 
 
 def test_colour_gmm_on_red_fruit():
