@@ -16,6 +16,7 @@ from scipy.spatial import cKDTree
 from scipy.spatial.transform import Rotation
 
 from orchard_mapping.errors import OrchardMappingError, ScenarioError
+from orchard_mapping.sim.scene import Fruit
 from orchard_mapping.sim.splat import PCls, PointScene
 
 DEFAULT_DATA_DIR = Path(__file__).resolve().parents[2] / "benchmarks" / "data" / "real_trees"
@@ -304,14 +305,6 @@ def scan_radius_guess(scan: ScanTree) -> np.ndarray:
     return np.array(out or [0.12])
 
 
-@dataclass(frozen=True)
-class ScanFruit:
-    tree: int
-    position: np.ndarray  # (3,) world centre
-    radius: float  # m
-    color: str  # "red" / "green"
-
-
 @dataclass
 class ScanRowScene:
     spec: ScanRowSpec
@@ -320,7 +313,7 @@ class ScanRowScene:
     posts: list[dict]
     points: PointScene
     row_x: tuple[float, float]
-    fruit: list[ScanFruit] = field(default_factory=list)
+    fruit: list[Fruit] = field(default_factory=list)
 
 
 _FRUIT_STREAM = 0xF2017  # the fruit's draws (seed, this): the rows without fruit keep every other draw
@@ -336,7 +329,7 @@ def _fibonacci_sphere(n: int) -> np.ndarray:
     return np.column_stack([r * np.cos(phi), r * np.sin(phi), z])
 
 
-def _place_fruit(t: PlacedTree, n: int, spec: ScanRowSpec, rng: np.random.Generator) -> list[ScanFruit]:
+def _place_fruit(t: PlacedTree, n: int, spec: ScanRowSpec, rng: np.random.Generator) -> list[Fruit]:
     """Up to n fruit hanging in the outer shell of tree t's crown: centred just outside a crown point that lies
     in the outer 30 % of its 20 cm height band's reach from the crown's centre line, between 15 cm above the
     clear trunk and 85 % of the tree's height, no two fruit interpenetrating."""
@@ -354,7 +347,7 @@ def _place_fruit(t: PlacedTree, n: int, spec: ScanRowSpec, rng: np.random.Genera
     r_xy = np.linalg.norm(rad, axis=1)
     ok = (h > t.clear_height + 0.15) & (h < 0.85 * t.height) & (r_xy > 0.7 * reach) & (r_xy > 0.05)
     cand = np.flatnonzero(ok)
-    out: list[ScanFruit] = []
+    out: list[Fruit] = []
     if not len(cand):
         return out
     for _ in range(n):
@@ -365,12 +358,12 @@ def _place_fruit(t: PlacedTree, n: int, spec: ScanRowSpec, rng: np.random.Genera
             c = fol[i] + out_dir * 0.2 * r - np.array([0.0, 0.0, 0.5 * r])  # hanging below its spur
             if all(np.linalg.norm(c - f.position) > r + f.radius + 0.005 for f in out):
                 red = bool(rng.uniform() < spec.fruit_red_fraction)
-                out.append(ScanFruit(t.id, c, r, "red" if red else "green"))
+                out.append(Fruit(t.id, c, r, "red" if red else "green"))
                 break
     return out
 
 
-def _fruit_points(fruit: list[ScanFruit], rng: np.random.Generator, first_index: int
+def _fruit_points(fruit: list[Fruit], rng: np.random.Generator, first_index: int
                   ) -> tuple[np.ndarray, ...]:
     """(xyz, radius, albedo, normal, cls, inst) of the fruit's surface points: this renderer's own fruit look
     (a red fruit: a blush of its own red over a yellow-green ground, mottled by smooth noise and darker
@@ -422,7 +415,7 @@ def build_scan_row(seed: int, spec: ScanRowSpec = ScanRowSpec(), trees: list[Sca
     ground = BumpyGround(rng, spec, xr, y_half)
     picks = rng.permutation(np.resize(rng.permutation(len(pool)), n))
     placed = [_place_tree(i, pool[int(picks[i])], float(xs[i]), float(ys[i]), ground, rng, spec) for i in range(n)]
-    fruit: list[ScanFruit] = []
+    fruit: list[Fruit] = []
     if spec.fruit_per_tree[1] > 0:
         f_rng = np.random.default_rng([seed, _FRUIT_STREAM])
         for k, t in enumerate(placed):

@@ -123,14 +123,19 @@ def test_missing_scans_raise_a_typed_error(tmp_path):
         load_scan_trees(tmp_path)
 
 
-def test_tiny_scan_row_writes_readable_bags(tmp_path):
+def _tiny_row(tmp_path) -> ScanRowSpec:
+    """Two synthetic scans under tmp_path/scans and the spec of a tiny, fast row of them."""
     data = tmp_path / "scans" / "synthetic"
     data.mkdir(parents=True)
     rng = np.random.default_rng(0)
     for k, r in enumerate((0.18, 0.22)):
         np.savez_compressed(data / f"tree{k}.npz", **_synthetic_scan(rng, r))
-    spec = ScanRowSpec(n_trees=2, rate_hz=1.0, width=160, height=120, fx=152.0, fy=152.0, cx=80.0, cy=60.0,
+    return ScanRowSpec(n_trees=2, rate_hz=1.0, width=160, height=120, fx=152.0, fy=152.0, cx=80.0, cy=60.0,
                        background_row_m=0.0, ground_spacing_m=0.04, margin_m=0.5)
+
+
+def test_tiny_scan_row_writes_readable_bags(tmp_path):
+    spec = _tiny_row(tmp_path)
     res = generate_scan_row(tmp_path / "row", seed=1, spec=spec, data_dir=tmp_path / "scans")
     truth = json.loads(res.truth_path.read_text())
     assert truth["schema"] == "orchard_mapping.ground_truth/1" and len(truth["trees"]) == 2
@@ -153,13 +158,7 @@ def test_fruit_in_a_scan_row_hang_in_the_crowns_and_are_seen(tmp_path):
     """ScanRowSpec.fruit_per_tree hangs fruit in the crowns' outer shell: inside the tree's height, above its
     clear trunk, none interpenetrating; the truth lists each with its visibility per side and the counts add
     up; the fruit draws leave the rest of the row as it was without fruit (trees, trunk truth, ground)."""
-    data = tmp_path / "scans" / "synthetic"
-    data.mkdir(parents=True)
-    rng = np.random.default_rng(0)
-    for k, r in enumerate((0.18, 0.22)):
-        np.savez_compressed(data / f"tree{k}.npz", **_synthetic_scan(rng, r))
-    spec = ScanRowSpec(n_trees=2, rate_hz=1.0, width=160, height=120, fx=152.0, fy=152.0, cx=80.0, cy=60.0,
-                       background_row_m=0.0, ground_spacing_m=0.04, margin_m=0.5)
+    spec = _tiny_row(tmp_path)
     trees = load_scan_trees(tmp_path / "scans")
     plain = build_scan_row(1, spec, trees)
     fruity = build_scan_row(1, replace(spec, fruit_per_tree=(8, 12)), trees)
