@@ -322,8 +322,9 @@ def fruit_offsets(front: SideFruit, back: SideFruit, params: FruitParams) -> np.
 
     Candidate pairs: a front and a back fruit within align_gate_m. For back fruit k, the pairs whose back fruit
     lies within align_radius_m of it vote: the pair whose difference (front - back) has most others within
-    align_kernel_m wins, and the offset is the mean difference of those. Fruit hang in irregular
-    constellations, so only the true shift gathers many pairs."""
+    align_kernel_m wins, and the offset is the mean difference of those, taken when they are at least
+    align_min_support and twice the pairs that agree on no shift. Fruit hang in irregular constellations, so
+    only the true shift gathers many pairs."""
     off = np.zeros((len(back.positions), 3))
     if params.align_gate_m <= 0 or not len(front.positions) or not len(back.positions):
         return off
@@ -340,7 +341,10 @@ def fruit_offsets(front: SideFruit, back: SideFruit, params: FruitParams) -> np.
         agree = np.linalg.norm(vk[:, None, :] - vk[None, :, :], axis=2) <= params.align_kernel_m  # (n, n)
         support = agree.sum(axis=1)
         best = int(np.argmax(support))
-        if support[best] >= params.align_min_support:
+        # a shift only where it gathers twice the pairs that no shift does: fruit hanging in a regular pattern
+        # (or a side already in place) agree at the pattern's spacing too, and must not be moved by it
+        unshifted = int((np.linalg.norm(vk, axis=1) <= params.align_kernel_m).sum())
+        if support[best] >= max(params.align_min_support, 2 * unshifted):
             off[k] = vk[agree[best]].mean(axis=0)
     return off
 
