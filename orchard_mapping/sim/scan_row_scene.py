@@ -363,8 +363,7 @@ def _place_fruit(t: PlacedTree, n: int, spec: ScanRowSpec, rng: np.random.Genera
     return out
 
 
-def _fruit_points(fruit: list[Fruit], rng: np.random.Generator, first_index: int
-                  ) -> tuple[np.ndarray, ...]:
+def _fruit_points(fruit: list[Fruit], rng: np.random.Generator) -> tuple[np.ndarray, ...]:
     """(xyz, radius, albedo, normal, cls, inst) of the fruit's surface points: this renderer's own fruit look
     (a red fruit: a blush of its own red over a yellow-green ground, mottled by smooth noise and darker
     towards a random side; a green one: green to yellow-green with faint mottling)."""
@@ -387,7 +386,7 @@ def _fruit_points(fruit: list[Fruit], rng: np.random.Generator, first_index: int
             alb = alb * (1 + 0.12 * mottle)[:, None]
         alb = alb * rng.uniform(0.8, 1.15) * rng.uniform(0.94, 1.06, (n, 1))
         parts.append((p, np.full(n, 0.8 * FRUIT_POINT_SPACING_M), alb, u, np.full(n, PCls.FRUIT, np.uint8),
-                      np.full(n, first_index + k, np.int32)))
+                      np.full(n, k, np.int32)))
     return tuple(np.concatenate([q[i] for q in parts]) for i in range(6)) if parts else ()
 
 
@@ -513,7 +512,7 @@ def build_scan_row(seed: int, spec: ScanRowSpec = ScanRowSpec(), trees: list[Sca
                 bx += rng.uniform(*spec.spacing_m)
 
     if fruit:
-        parts.append(_fruit_points(fruit, np.random.default_rng([seed, _FRUIT_STREAM, 1]), 0))
+        parts.append(_fruit_points(fruit, np.random.default_rng([seed, _FRUIT_STREAM, 1])))
     cat = [np.concatenate([p[k] for p in parts]) for k in range(6)]
     scene = PointScene(cat[0].astype(np.float32), cat[1].astype(np.float32),
                        np.clip(cat[2], 0, 1).astype(np.float32), cat[3].astype(np.float32), cat[4], cat[5])

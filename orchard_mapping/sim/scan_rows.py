@@ -45,7 +45,7 @@ from orchard_mapping.sim.scenario import load_scenario
 from orchard_mapping.sim.simulate import fresh_output_folder
 from orchard_mapping.sim.splat import PCls, SplatFrame, SplatRenderer, StereoSensor
 from orchard_mapping.sim.trajectory import CameraPath, side_path
-from orchard_mapping.sim.truth import FRUIT_MIN_PIXELS, FRUIT_MIN_VISIBLE_FRACTION
+from orchard_mapping.sim.truth import fruit_disc_fraction, fruit_visible
 
 log = logging.getLogger(__name__)
 
@@ -89,11 +89,8 @@ class SplatVisibility:
         cls, inst = f.cls.ravel(), f.inst.ravel()
         if len(self.fruit_pos):  # visible pixels over the projected disc (the simulator's rule)
             counts = np.bincount(inst[cls == PCls.FRUIT], minlength=len(self.fruit_pos))
-            Tcw = np.linalg.inv(T_world_cam)
-            z = self.fruit_pos @ Tcw[2, :3] + Tcw[2, 3]
-            area = np.pi * (K.fx * self.fruit_r / np.maximum(z, 1e-3)) ** 2
-            frac = np.where(z > 0.1, counts / area, 0.0)
-            self.fruit_seen |= (frac >= FRUIT_MIN_VISIBLE_FRACTION) & (counts >= FRUIT_MIN_PIXELS)
+            frac = fruit_disc_fraction(counts, self.fruit_pos, self.fruit_r, T_world_cam, K.fx)
+            self.fruit_seen |= fruit_visible(frac, counts)
         idx = f.index.ravel()
         self.point_seen[idx[idx >= 0]] = True
         pts = f.points.reshape(-1, 3)

@@ -60,6 +60,22 @@ def diameter_at_height(tree: TreeGeom, h: float) -> float:
     return float(np.interp(h, hs, tree.axis_diam))
 
 
+def fruit_disc_fraction(counts: np.ndarray, fruit_pos: np.ndarray, fruit_r: np.ndarray, T_world_cam: np.ndarray,
+                        fx: float) -> np.ndarray:
+    """(F,) share of each fruit's projected disc that its counts (F,) visible pixels cover in one frame (0 for a
+    fruit within 0.1 m of the camera plane or behind it); fruit_pos (F, 3) world, fruit_r (F,) m."""
+    Tcw = np.linalg.inv(T_world_cam)
+    pc = fruit_pos @ Tcw[:3, :3].T + Tcw[:3, 3]
+    z = np.maximum(pc[:, 2], 1e-3)
+    area = np.pi * (fx * fruit_r / z) ** 2
+    return np.where(pc[:, 2] > 0.1, counts / area, 0.0)
+
+
+def fruit_visible(frac: np.ndarray, counts: np.ndarray) -> np.ndarray:
+    """(F,) bool: the frame shows enough of each fruit for it to count as visible from the side."""
+    return (frac >= FRUIT_MIN_VISIBLE_FRACTION) & (counts >= FRUIT_MIN_PIXELS)
+
+
 class VisibilityAccumulator:
     """What one side's frames saw of each tree, fruit and leaf (from the renderer's instance labels)."""
 
@@ -94,15 +110,11 @@ class VisibilityAccumulator:
         fr = cls == Cls.FRUIT
         if len(self.fruit_pos):
             counts = np.bincount(inst[fr], minlength=len(self.fruit_pos))
-            Tcw = np.linalg.inv(T_world_cam)
-            pc = self.fruit_pos @ Tcw[:3, :3].T + Tcw[:3, 3]
-            z = np.maximum(pc[:, 2], 1e-3)
-            area = np.pi * (self.K.fx * self.fruit_r / z) ** 2
-            frac = np.where(pc[:, 2] > 0.1, counts / area, 0.0)
+            frac = fruit_disc_fraction(counts, self.fruit_pos, self.fruit_r, T_world_cam, self.K.fx)
             better = frac > self.fruit_best
             self.fruit_best = np.where(better, frac, self.fruit_best)
             self.fruit_px = np.where(better, counts, self.fruit_px)
-            self.fruit_seen |= (frac >= FRUIT_MIN_VISIBLE_FRACTION) & (counts >= FRUIT_MIN_PIXELS)
+            self.fruit_seen |= fruit_visible(frac, counts)
         # Per-pixel tree id and height above that tree's local ground.
         tree_cls = (cls == Cls.TRUNK) | (cls == Cls.BRANCH) | (cls == Cls.LEAF) | fr
         # a fruit pixel's instance is its fruit, any other's its tree: look fruit up where there is fruit only
